@@ -1,0 +1,39 @@
+# Two commands on a fresh machine: `make demo` and `make test`. Both create or update .venv first.
+PYTHON ?= python3
+VENV ?= .venv
+# The CPU wheel of torch 2.13.0 is on these machines; a bare `torch` would pull a multi-GB CUDA build.
+TORCH_SPEC ?= torch==2.13.0
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.sb3-dipper-installed
+export MUJOCO_GL ?= egl
+
+.PHONY: demo test test-slow lint format venv clean
+
+venv: $(STAMP)
+
+$(STAMP): setup.py
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "$(TORCH_SPEC)"
+	$(PY) -m pip install --quiet -e ".[zoo,plots,tests]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) zoo_scripts/demo.py --output-dir demo_output
+
+test: $(STAMP)
+	$(PY) -m pytest -q --durations=15
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow --durations=15
+
+lint: $(STAMP)
+	$(PY) -m ruff check sb3_dipper tests zoo_scripts setup.py
+	$(PY) -m mypy sb3_dipper
+
+format: $(STAMP)
+	$(PY) -m ruff check --fix sb3_dipper tests zoo_scripts setup.py
+	$(PY) -m ruff format sb3_dipper tests zoo_scripts setup.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,466 @@
+"""Shared machinery of two-level algorithms on the option layer (DIPPER, HIER and the hierarchical baselines).
+
+:class:`HierarchicalAlgorithm` is to our algorithms what SB3's ``OffPolicyAlgorithm`` is to SAC: it owns the lower
+level (an SB3 ``SAC`` with ``HerReplayBuffer`` on subgoals), the option layer, the learn loop, ``predict`` and
+saving. A subclass decides how the higher level acts, what it stores and how it trains.
+
+Counting follows SB3 so flat and hierarchical curves share one x-axis: ``num_timesteps`` counts primitive env steps,
+callbacks' ``on_step`` runs once per primitive step, ``rollout/success_rate`` comes from base-env episodes.
+``predict`` returns a primitive action; the recurrent ``state`` carries ``(subgoals, steps_left)``, so SB3's
+``evaluate_policy``, ``EvalCallback`` and the zoo's ``enjoy`` drive a hierarchical policy unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from abc import abstractmethod
+from collections import deque
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import SAC
+from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import is_vectorized_observation, safe_mean
+from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
+
+from sb3_dipper.common.low_level import LevelLogger, SACLowLevel, SubgoalNormalizer, SubgoalVecEnv, low_level_observation_space
+from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition, low_level_observation
+from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
+from sb3_dipper.common.validation import check_goal_observation_space
+
+SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
+
+# A lower buffer that is only loaded to predict needs no room: one HER "episode" of a few transitions.
+PREDICT_ONLY_BUFFER_SIZE = 16
+
+
+class HierarchicalAlgorithm(BaseAlgorithm):
+    """Base class of two-level algorithms: a higher level proposes subgoals, a lower SAC+HER reaches them.
+
+    :param policy: the higher-level policy (class or alias)
+    :param env: a goal env (Dict observations with ``observation``, ``achieved_goal``, ``desired_goal``)
+    :param learning_rate: learning rate of the higher level
+    :param option_steps: K, the primitive steps per option (subgoal)
+    :param subgoal_space: the subgoal space (default: the env's declared one, see ``resolve_subgoal_space``)
+    :param buffer_size: lower-level replay buffer size (primitive transitions)
+    :param learning_starts: primitive steps of uniformly random subgoals and lower actions before learning
+    :param batch_size: lower-level minibatch size
+    :param tau: lower-level target smoothing coefficient
+    :param gamma: lower-level discount factor
+    :param train_freq: train the lower level every ``train_freq`` primitive vec-env steps
+    :param gradient_steps: lower-level gradient steps per training round
+    :param ent_coef: lower-level SAC entropy coefficient (``"auto"`` learns it)
+    :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs (``n_sampled_goal``, ``goal_selection_strategy``)
+    :param low_learning_rate: learning rate of the lower SAC
+    :param low_policy_kwargs: ``policy_kwargs`` of the lower SAC (for example ``net_arch``)
+    :param low_level_kwargs: any other keyword argument of the lower ``SAC``
+    :param random_subgoal_prob: probability that a subgoal is drawn uniformly at random during training
+    :param max_episode_steps: base-env episode length (default: read from the env's ``TimeLimit``)
+    :param policy_kwargs: keyword arguments of the higher-level policy
+    :param stats_window_size: window of the rollout statistics
+    :param tensorboard_log: tensorboard log folder
+    :param verbose: 0 silent, 1 info, 2 debug
+    :param seed: random seed
+    :param device: torch device
+    :param _init_setup_model: whether to build the networks at construction
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {}
+    lower: SAC
+    low_level: SACLowLevel
+    option_env: OptionVecEnv | None
+
+    def __init__(
+        self,
+        policy: str | type[BasePolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 3e-4,
+        option_steps: int = 30,
+        subgoal_space: SubgoalSpace | None = None,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 3000,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.95,
+        train_freq: int = 1,
+        gradient_steps: int = 1,
+        ent_coef: str | float = "auto",
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        low_learning_rate: float | Schedule = 1e-3,
+        low_policy_kwargs: dict[str, Any] | None = None,
+        low_level_kwargs: dict[str, Any] | None = None,
+        random_subgoal_prob: float = 0.0,
+        max_episode_steps: int | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+    ) -> None:
+        algorithm = type(self).__name__
+        if isinstance(policy, str):
+            if policy not in self.policy_aliases:
+                raise ValueError(f"{algorithm} has no policy {policy!r}; choose one of {sorted(self.policy_aliases)}")
+            # Map the alias ourselves: SB3 refuses the string "MlpPolicy" for Dict observations, and goal envs are Dict.
+            policy = self.policy_aliases[policy]
+        if env is not None:
+            env = maybe_make_env(env, verbose)
+            check_goal_observation_space(env.observation_space, algorithm)
+        if not 0.0 <= random_subgoal_prob <= 1.0:
+            raise ValueError(f"random_subgoal_prob must be in [0, 1], got {random_subgoal_prob}")
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            support_multi_env=True,
+            seed=seed,
+            supported_action_spaces=(spaces.Box,),
+        )
+        self.option_steps = option_steps
+        self.subgoal_space = subgoal_space
+        self.buffer_size = buffer_size
+        self.learning_starts = learning_starts
+        self.batch_size = batch_size
+        self.tau = tau
+        self.gamma = gamma
+        self.train_freq = train_freq
+        self.gradient_steps = gradient_steps
+        self.ent_coef = ent_coef
+        self.replay_buffer_kwargs = {} if replay_buffer_kwargs is None else replay_buffer_kwargs
+        self.low_learning_rate = low_learning_rate
+        self.low_policy_kwargs = {} if low_policy_kwargs is None else low_policy_kwargs
+        self.low_level_kwargs = {} if low_level_kwargs is None else low_level_kwargs
+        self.random_subgoal_prob = random_subgoal_prob
+        self.max_episode_steps = max_episode_steps
+        self.low_normalizer: SubgoalNormalizer | None = None
+        self._low_steps_since_train = 0
+        self._rng = np.random.default_rng(seed)
+        if option_steps < 1:
+            raise ValueError(f"option_steps must be at least 1, got {option_steps}")
+
+    # ---------------------------------------------------------------------------------------------------- set-up
+
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.set_random_seed(self.seed)
+        if self.env is not None:
+            self.subgoal_space = resolve_subgoal_space(self.env, self.subgoal_space)
+            self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
+        assert self.subgoal_space is not None, "a saved model always carries its subgoal space"
+        if self._vec_normalize_env is not None and self.low_normalizer is None:
+            self.low_normalizer = SubgoalNormalizer(self.subgoal_space)
+            self.low_normalizer.refresh(self._vec_normalize_env)
+        self._setup_low_level()
+        self._setup_high_level()
+        self.option_env = None
+        if self.env is not None:
+            self.option_env = OptionVecEnv(
+                self.env, self.subgoal_space, self.option_steps, self.low_level, sink=self._on_primitive_step
+            )
+
+    @staticmethod
+    def _episode_length(env: VecEnv) -> int:
+        spec = env.get_attr("spec", indices=[0])[0]
+        length = getattr(spec, "max_episode_steps", None)
+        if length is None:
+            raise ValueError(
+                "The env has no time limit (spec.max_episode_steps is None): hierarchical algorithms need the "
+                "episode length to size higher-level trajectories. Pass max_episode_steps=... or wrap it in TimeLimit."
+            )
+        return int(length)
+
+    @property
+    def high_steps(self) -> int:
+        """T, the most higher-level decisions in one base episode."""
+        assert self.max_episode_steps is not None
+        return math.ceil(self.max_episode_steps / self.option_steps)
+
+    def _setup_low_level(self) -> None:
+        assert self.subgoal_space is not None
+        low_env = SubgoalVecEnv(
+            low_level_observation_space(self.observation_space, self.subgoal_space),  # type: ignore[arg-type]
+            self.action_space,
+            self.subgoal_space,
+            self.n_envs,
+        )
+        buffer_size = self.buffer_size if self.env is not None else PREDICT_ONLY_BUFFER_SIZE * self.n_envs
+        self.lower = SAC(
+            "MultiInputPolicy",
+            low_env,
+            learning_rate=self.low_learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=0,
+            batch_size=self.batch_size,
+            tau=self.tau,
+            gamma=self.gamma,
+            train_freq=self.train_freq,
+            gradient_steps=self.gradient_steps,
+            ent_coef=self.ent_coef,
+            replay_buffer_class=HerReplayBuffer,
+            replay_buffer_kwargs=self.replay_buffer_kwargs,
+            policy_kwargs=self.low_policy_kwargs,
+            device=self.device,
+            **self.low_level_kwargs,
+        )
+        self.lower._vec_normalize_env = self.low_normalizer  # type: ignore[assignment]
+        self.low_level = SACLowLevel(self.lower, self.low_normalizer)
+
+    @abstractmethod
+    def _setup_high_level(self) -> None:
+        """Build the higher level (policy, buffers, optimizers)."""
+
+    # ---------------------------------------------------------------------------------------------------- acting
+
+    @abstractmethod
+    def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
+        """Higher-level actions in [-1, 1]^d for a batch of (normalised) observations."""
+
+    def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
+        """Actions while collecting: uniform before ``learning_starts`` and with ``random_subgoal_prob``."""
+        assert self.subgoal_space is not None
+        shape = (self.n_envs, self.subgoal_space.dim)
+        if self.num_timesteps < self.learning_starts:
+            return self._rng.uniform(-1.0, 1.0, size=shape).astype(np.float32)
+        actions = self._high_level_actions(observation, deterministic=False)
+        random = self._rng.random(self.n_envs) < self.random_subgoal_prob
+        actions[random] = self._rng.uniform(-1.0, 1.0, size=(int(random.sum()), shape[1]))
+        return actions
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """A primitive action; ``state = (subgoals, steps_left)`` carries the current option between calls.
+
+        ``observation`` is what the (possibly ``VecNormalize``-d) env returns, batched or not.
+        """
+        assert isinstance(observation, dict) and self.subgoal_space is not None, "a goal env gives Dict observations"
+        vectorized = is_vectorized_observation(observation, self.observation_space)  # type: ignore[arg-type]
+        batch = {key: np.asarray(value).reshape(-1, *self.observation_space[key].shape) for key, value in observation.items()}  # type: ignore[index]
+        n_envs = batch["desired_goal"].shape[0]
+        if state is None:
+            subgoals, steps_left = np.zeros((n_envs, self.subgoal_space.dim), dtype=np.float32), np.zeros(n_envs, np.int64)
+        else:
+            subgoals, steps_left = np.array(state[0], dtype=np.float32), np.array(state[1], dtype=np.int64)
+        new_option = steps_left <= 0
+        if episode_start is not None:
+            new_option |= np.asarray(episode_start, dtype=bool).reshape(-1)
+        self._refresh_low_normalizer()
+        if new_option.any():
+            self.policy.set_training_mode(False)
+            high_actions = self._high_level_actions(batch, deterministic)
+            subgoals[new_option] = self.subgoal_space.to_world(high_actions[new_option])
+            steps_left[new_option] = self.option_steps
+        normalized_subgoals = subgoals if self.low_normalizer is None else self.low_normalizer.normalize_subgoal(subgoals)
+        low_obs = low_level_observation(batch, normalized_subgoals, self.subgoal_space)
+        actions = self.low_level.act(low_obs, deterministic, normalized=True)
+        if isinstance(self.action_space, spaces.Box):
+            actions = np.clip(actions, self.action_space.low, self.action_space.high)
+        if not vectorized:
+            actions = actions.squeeze(axis=0)
+        return actions, (subgoals, steps_left - 1)
+
+    # ---------------------------------------------------------------------------------------------------- learning
+
+    def learn(
+        self: SelfHierarchicalAlgorithm,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "run",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfHierarchicalAlgorithm:
+        if self.option_env is None:
+            raise ValueError(
+                f"learn() needs an env: pass one to {type(self).__name__}(...) or to {type(self).__name__}.load(path, env=...)"
+            )
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        self.option_env.observe_reset(self._last_obs)  # type: ignore[arg-type]
+        self.lower.set_logger(LevelLogger(self.logger, "low"))  # type: ignore[arg-type]
+        self._log_interval = log_interval
+        self._callback = callback
+        callback.on_training_start(locals(), globals())
+        while self.num_timesteps < total_timesteps:
+            if not self._collect_option():
+                break
+            if self.num_timesteps >= self.learning_starts and self._has_training_data():
+                self.train()
+        self._refresh_low_normalizer()
+        callback.on_training_end()
+        return self
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        if reset_num_timesteps or self._last_obs is None:
+            # The env is about to be reset: an option a callback interrupted must not run on into the new episode.
+            self._end_open_episodes()
+        self._option_metrics: dict[str, deque] = {
+            key: deque(maxlen=self._stats_window_size) for key in ("subgoal_distance", "low_value")
+        }
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _refresh_low_normalizer(self) -> None:
+        """Copy the live ``VecNormalize`` statistics (a saved model keeps the last copy for ``load(env=None)``)."""
+        if self.low_normalizer is not None and self._vec_normalize_env is not None:
+            self.low_normalizer.refresh(self._vec_normalize_env)
+
+    def _end_open_episodes(self) -> None:
+        """Close what an interrupted option left open; a subclass also closes its higher-level episodes."""
+        buffer = self.lower.replay_buffer
+        if isinstance(buffer, HerReplayBuffer) and (buffer._current_ep_start != buffer.pos).any():
+            buffer.truncate_last_trajectory()
+
+    def _collect_option(self) -> bool:
+        """Run one option on every env; return False when a callback stopped training."""
+        assert self.option_env is not None and self._last_obs is not None
+        self.policy.set_training_mode(False)
+        self.low_level.random_actions = self.num_timesteps < self.learning_starts
+        self._refresh_low_normalizer()
+        start_obs = {key: value.copy() for key, value in self.option_env.original_obs.items()}  # type: ignore[union-attr]
+        high_actions = self._training_high_level_actions(self._last_obs)  # type: ignore[arg-type]
+        self._continue_training = True
+        new_obs, rewards, dones, infos = self.option_env.step(high_actions)
+        if not self._continue_training:
+            return False
+        self._store_option(start_obs, high_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
+        for info in infos:
+            self._option_metrics["subgoal_distance"].append(info["subgoal_distance"])
+            if "low_value" in info and self.num_timesteps >= self.learning_starts:
+                self._option_metrics["low_value"].append(info["low_value"])
+        self._last_obs = new_obs  # type: ignore[assignment]
+        return True
+
+    @abstractmethod
+    def _store_option(
+        self,
+        start_obs: DictObs,
+        high_actions: np.ndarray,
+        new_obs: DictObs,
+        rewards: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """Store a finished option of every env (``start_obs`` original, ``new_obs`` as the env returned it)."""
+
+    def _on_primitive_step(self, transition: PrimitiveTransition) -> bool:
+        """The option layer's sink: count the step, fill the lower buffer, run callbacks, log episodes."""
+        self.num_timesteps += self.n_envs
+        self._low_steps_since_train += 1
+        self.low_level.store(transition)
+        dones, infos = transition.base_dones, transition.infos
+        self._callback.update_locals(locals())
+        if not self._callback.on_step():
+            self._continue_training = False
+        self._update_info_buffer(infos, dones)
+        self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+        for _ in range(int(np.sum(dones))):
+            self._episode_num += 1
+            if self._log_interval is not None and self._episode_num % self._log_interval == 0:
+                self.dump_logs()
+        return self._continue_training
+
+    def _has_training_data(self) -> bool:
+        """Whether the buffers can be sampled (a model resumed without its buffers must first collect some)."""
+        return has_finished_episode(self.lower.replay_buffer)
+
+    def _train_low_level(self) -> None:
+        """The lower SAC's updates owed for the primitive steps collected since the last round."""
+        gradient_steps = (self._low_steps_since_train // self.train_freq) * self.gradient_steps
+        self._low_steps_since_train %= self.train_freq
+        if gradient_steps > 0:
+            self.lower._current_progress_remaining = self._current_progress_remaining
+            self.lower.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
+
+    @abstractmethod
+    def train(self) -> None:
+        """One training round after an option: the lower level's owed updates, then the higher level's."""
+
+    def dump_logs(self) -> None:
+        """SB3's off-policy log keys (``rollout/success_rate``, ``time/fps``, ...) plus the option metrics."""
+        assert self.ep_info_buffer is not None and self.ep_success_buffer is not None
+        time_elapsed = max((time.time_ns() - self.start_time) / 1e9, sys.float_info.epsilon)
+        fps = int((self.num_timesteps - self._num_timesteps_at_start) / time_elapsed)
+        self.logger.record("time/episodes", self._episode_num, exclude="tensorboard")
+        if len(self.ep_info_buffer) > 0 and len(self.ep_info_buffer[0]) > 0:
+            self.logger.record("rollout/ep_rew_mean", safe_mean([ep_info["r"] for ep_info in self.ep_info_buffer]))
+            self.logger.record("rollout/ep_len_mean", safe_mean([ep_info["l"] for ep_info in self.ep_info_buffer]))
+        if len(self.ep_success_buffer) > 0:
+            self.logger.record("rollout/success_rate", safe_mean(self.ep_success_buffer))
+        for key, values in self._option_metrics.items():
+            if len(values) > 0:
+                self.logger.record(f"rollout/{key}", safe_mean(values))
+        self.logger.record("time/fps", fps)
+        self.logger.record("time/time_elapsed", int(time_elapsed), exclude="tensorboard")
+        self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        self.logger.dump(step=self.num_timesteps)
+
+    # ---------------------------------------------------------------------------------------------------- saving
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "low_level", "option_env", "_callback", "_option_metrics"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["lower.policy", "lower.actor.optimizer", "lower.critic.optimizer"]
+        if self.lower.ent_coef_optimizer is not None:
+            return [*state_dicts, "lower.ent_coef_optimizer"], ["lower.log_ent_coef"]
+        return state_dicts, ["lower.ent_coef_tensor"]
+
+    @property
+    def replay_buffer(self) -> ReplayBuffer | None:
+        """The lower replay buffer (so that ``CheckpointCallback(save_replay_buffer=True)`` saves the buffers)."""
+        return self.lower.replay_buffer
+
+    def save_replay_buffer(self, path: str) -> None:
+        """Save the lower replay buffer (SB3 pickle at ``path``) and the higher level's data beside it."""
+        self.lower.save_replay_buffer(path)
+        self._save_high_level_data(str(path))
+
+    def load_replay_buffer(self, path: str, truncate_last_traj: bool = True) -> None:
+        """Load what :meth:`save_replay_buffer` wrote, to resume training where it stopped."""
+        self.lower.load_replay_buffer(path, truncate_last_traj=truncate_last_traj)
+        self._load_high_level_data(str(path), truncate_last_traj)
+
+    @abstractmethod
+    def _save_high_level_data(self, path: str) -> None:
+        """Save the higher level's replay data next to the lower buffer saved at ``path``."""
+
+    @abstractmethod
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
+        """Load what :meth:`_save_high_level_data` wrote."""
+
+
+def has_finished_episode(buffer: ReplayBuffer | None) -> bool:
+    """Whether a HER buffer holds a finished episode (before that, SB3's HER cannot sample)."""
+    return isinstance(buffer, HerReplayBuffer) and bool(buffer.ep_length.any())
+
+
+def sibling_path(path: str, suffix: str) -> str:
+    """``replay_buffer.pkl`` -> ``replay_buffer<suffix>``: where the higher level's data sits beside the lower buffer."""
+    return f"{path.removesuffix('.pkl')}{suffix}"

@@ -1,0 +1,236 @@
+"""The learned lower level: an SB3 ``SAC`` with ``HerReplayBuffer`` on subgoals, driven by the option layer.
+
+The lower SAC never steps an environment itself. It is built on :class:`SubgoalVecEnv`, a facade that exposes the
+lower-level goal env (``desired_goal`` = subgoal, vectorised ``compute_reward`` with the subgoal threshold) so that
+SB3's ``HerReplayBuffer`` can relabel subgoals; the option layer feeds its buffer and the hierarchical algorithm calls
+its ``train()``. Its log keys go through :class:`LevelLogger` so the two levels never overwrite each other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import SAC
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
+
+from sb3_dipper.common.option_env import DictObs, PrimitiveTransition
+from sb3_dipper.common.subgoals import SubgoalSpace
+
+
+def low_level_observation_space(observation_space: spaces.Dict, subgoal_space: SubgoalSpace) -> spaces.Dict:
+    """``Dict(observation, achieved_goal, desired_goal)`` of the lower level (goals in the subgoal space)."""
+    goal_box = spaces.Box(-np.inf, np.inf, shape=(subgoal_space.dim,), dtype=np.float32)
+    observation = observation_space["observation"]
+    return spaces.Dict(
+        {
+            "observation": spaces.Box(-np.inf, np.inf, shape=observation.shape, dtype=np.float32),
+            "achieved_goal": goal_box,
+            "desired_goal": goal_box,
+        }
+    )
+
+
+class SubgoalVecEnv(VecEnv):
+    """The lower level's goal env as SB3 sees it: spaces and ``compute_reward``, never stepped.
+
+    :param observation_space: the lower-level observation space
+    :param action_space: the primitive action space
+    :param subgoal_space: gives the subgoal reward
+    :param num_envs: number of parallel envs of the option layer
+    """
+
+    def __init__(self, observation_space: spaces.Dict, action_space: spaces.Space, subgoal_space: SubgoalSpace, num_envs: int):
+        super().__init__(num_envs, observation_space, action_space)
+        self.subgoal_space = subgoal_space
+
+    def _not_stepped(self) -> RuntimeError:
+        return RuntimeError("The lower level's env is driven by the option layer; it cannot be reset or stepped directly.")
+
+    def reset(self) -> VecEnvObs:
+        raise self._not_stepped()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        raise self._not_stepped()
+
+    def step_wait(self) -> VecEnvStepReturn:
+        raise self._not_stepped()
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
+    ) -> list[Any]:
+        if method_name != "compute_reward":
+            raise AttributeError(f"The lower level's env only provides compute_reward, not {method_name}")
+        return [self.subgoal_space.compute_reward(*method_args, **method_kwargs) for _ in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        return [None for _ in range(self.num_envs)]
+
+
+class SubgoalNormalizer:
+    """Normalises lower-level observations with the statistics of the base env's ``VecNormalize``.
+
+    ``observation`` uses the base ``observation`` statistics; achieved and desired subgoals use the base
+    ``achieved_goal`` statistics of the projected dimensions. It keeps a copy of those statistics (refreshed during
+    training), so a saved model can still normalise after ``load(env=None)``, and it offers the two methods SB3's
+    buffers call.
+
+    :param subgoal_space: gives the projection of the achieved goal
+    """
+
+    def __init__(self, subgoal_space: SubgoalSpace) -> None:
+        self.subgoal_space = subgoal_space
+        self.statistics: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.clip = np.inf
+        self.epsilon = 1e-8
+
+    def refresh(self, vec_normalize: VecNormalize) -> None:
+        """Copy the current statistics of the base env's ``VecNormalize``."""
+        self.statistics = {}
+        if not vec_normalize.norm_obs:
+            return
+        self.clip, self.epsilon = vec_normalize.clip_obs, vec_normalize.epsilon
+        for key in ("observation", "achieved_goal"):
+            if key in (vec_normalize.norm_obs_keys or []):
+                rms = vec_normalize.obs_rms[key]  # type: ignore[index]
+                project = key == "achieved_goal"
+                mean = self.subgoal_space.project(rms.mean) if project else rms.mean
+                var = self.subgoal_space.project(rms.var) if project else rms.var
+                self.statistics[key] = (np.array(mean, dtype=np.float64), np.array(var, dtype=np.float64))
+
+    def _normalize(self, value: np.ndarray, base_key: str) -> np.ndarray:
+        if base_key not in self.statistics:
+            return value
+        mean, var = self.statistics[base_key]
+        return np.clip((value - mean) / np.sqrt(var + self.epsilon), -self.clip, self.clip).astype(np.float32)
+
+    def normalize_subgoal(self, subgoals: np.ndarray) -> np.ndarray:
+        return self._normalize(subgoals, "achieved_goal")
+
+    def normalize_subgoal_tensor(self, subgoals: th.Tensor) -> th.Tensor:
+        """:meth:`normalize_subgoal` for torch tensors, differentiable in ``subgoals``."""
+        if "achieved_goal" not in self.statistics:
+            return subgoals
+        mean, var = (
+            th.as_tensor(value, dtype=subgoals.dtype, device=subgoals.device) for value in self.statistics["achieved_goal"]
+        )
+        return ((subgoals - mean) / th.sqrt(var + self.epsilon)).clamp(-self.clip, self.clip)
+
+    def normalize_obs(self, obs: DictObs) -> DictObs:
+        return {
+            "observation": self._normalize(obs["observation"], "observation"),
+            "achieved_goal": self._normalize(obs["achieved_goal"], "achieved_goal"),
+            "desired_goal": self._normalize(obs["desired_goal"], "achieved_goal"),
+        }
+
+    def normalize_reward(self, reward: np.ndarray) -> np.ndarray:
+        return reward
+
+
+class LevelLogger:
+    """Forwards an inner algorithm's log records to the outer logger, renaming ``train/x`` to ``train/<level>_x``."""
+
+    def __init__(self, logger: Logger, level: str) -> None:
+        self._logger = logger
+        self._level = level
+
+    def _rename(self, key: str) -> str:
+        group, _, name = key.partition("/")
+        return f"{group}/{self._level}_{name}" if name else f"{self._level}_{key}"
+
+    def record(self, key: str, value: Any, exclude: str | tuple[str, ...] | None = None) -> None:
+        self._logger.record(self._rename(key), value, exclude)
+
+    def record_mean(self, key: str, value: Any, exclude: str | tuple[str, ...] | None = None) -> None:
+        self._logger.record_mean(self._rename(key), value, exclude)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._logger, name)
+
+
+def sac_state_value(sac: SAC, obs: dict[str, th.Tensor], critic: th.nn.Module | None = None) -> th.Tensor:
+    """``V(s, g) = min_i Q_i(s, g, a) - alpha * log pi(a | s, g)``, ``a ~ pi`` (one sample), shape ``(N,)``.
+
+    :param critic: the critic to evaluate (default: the SAC's current critic), for example a snapshot of it
+    """
+    actions, log_prob = sac.actor.action_log_prob(obs)
+    q_values = th.cat((critic or sac.critic)(obs, actions), dim=1).min(dim=1).values
+    entropy_coef = th.exp(sac.log_ent_coef.detach()) if sac.log_ent_coef is not None else sac.ent_coef_tensor
+    return q_values - entropy_coef * log_prob.reshape(-1)
+
+
+def sac_value_gap(sac: SAC, snapshot_critic: th.nn.Module, obs: dict[str, th.Tensor]) -> th.Tensor:
+    """``V^L(s, g) - V^L_m(s, g)``: the value under an older critic minus the value under the current one, ``(N,)``.
+
+    Both use one shared action sample of the current lower policy, so the entropy terms of the two values cancel.
+    """
+    actions, _ = sac.actor.action_log_prob(obs)
+    old = th.cat(snapshot_critic(obs, actions), dim=1).min(dim=1).values
+    new = th.cat(sac.critic(obs, actions), dim=1).min(dim=1).values
+    return old - new
+
+
+class SACLowLevel:
+    """The option layer's view of a lower SAC: batched actions, values, and the sink that fills its buffer.
+
+    :param sac: the lower-level SAC (its ``env`` is a :class:`SubgoalVecEnv`)
+    :param normalizer: normalises lower observations when the base env is a ``VecNormalize``
+    """
+
+    def __init__(self, sac: SAC, normalizer: SubgoalNormalizer | None = None) -> None:
+        self.sac = sac
+        self.normalizer = normalizer
+        self.random_actions = False
+
+    def tensor_obs(self, low_obs: DictObs, normalized: bool = False) -> dict[str, th.Tensor]:
+        if not normalized and self.normalizer is not None:
+            low_obs = self.normalizer.normalize_obs(low_obs)
+        return {key: th.as_tensor(value, dtype=th.float32, device=self.sac.device) for key, value in low_obs.items()}
+
+    def normalize_subgoal_tensor(self, subgoals: th.Tensor) -> th.Tensor:
+        return subgoals if self.normalizer is None else self.normalizer.normalize_subgoal_tensor(subgoals)
+
+    def act(self, low_obs: DictObs, deterministic: bool, normalized: bool = False) -> np.ndarray:
+        """Primitive actions; ``normalized=True`` when ``low_obs`` is already normalised (as in ``predict``)."""
+        n_envs = low_obs["desired_goal"].shape[0]
+        if self.random_actions:
+            scaled = np.random.uniform(-1.0, 1.0, size=(n_envs, get_action_dim(self.sac.action_space))).astype(np.float32)
+        else:
+            with th.no_grad():
+                scaled = self.sac.actor(self.tensor_obs(low_obs, normalized), deterministic=deterministic).cpu().numpy()
+        return self.sac.policy.unscale_action(scaled)
+
+    def value(self, low_obs: DictObs) -> np.ndarray | None:
+        with th.no_grad():
+            return sac_state_value(self.sac, self.tensor_obs(low_obs)).cpu().numpy()
+
+    def store(self, transition: PrimitiveTransition) -> None:
+        """Add one primitive step of all envs to the lower HER buffer; a segment end is a truncation."""
+        infos = [{"TimeLimit.truncated": bool(end)} for end in transition.segment_ends]
+        self.sac.replay_buffer.add(  # type: ignore[union-attr]
+            transition.low_obs,  # type: ignore[arg-type]
+            transition.next_low_obs,  # type: ignore[arg-type]
+            self.sac.policy.scale_action(transition.actions),
+            transition.low_rewards,
+            transition.segment_ends,
+            infos,
+        )

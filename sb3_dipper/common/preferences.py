@@ -1,0 +1,302 @@
+"""Preference pairs over higher-level trajectories: sampling, labelling and the stored dataset.
+
+Pair sampling follows the authors' PIPER code: two whole trajectories are drawn from the trajectory buffer and, with
+probability ``hindsight_goal_prob``, both are relabelled with one shared goal, an achieved goal taken from one of
+them, so that both answer the same "prompt". Labels come from a :class:`PreferenceSource`; the default is the
+primitive-in-the-loop labeller of the DIPPER paper (Section 4.3), which scores a trajectory by the number of options
+that ended within the goal threshold, ``R(tau) = sum_t 1[ag_{t+1} reached g]``, and prefers the higher score
+(ties are labelled 0.5). The score depends only on reached states, not on the lower policy's behaviour, so labelled
+pairs stay valid for the whole run: the dataset is stationary.
+
+A labelled pair is stored whole (observations, actions, reached subgoals), so the dataset does not depend on the
+trajectory buffer, is saved as npz (read without pickle), and can be replaced by labels from people.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import numpy as np
+
+from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.trajectories import TrajectoryBuffer
+
+DictObs = dict[str, np.ndarray]
+GoalReachedFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass
+class TrajectoryPairs:
+    """A batch of trajectory pairs; index 0 of the leading pair axis is tau^1, index 1 is tau^2.
+
+    Shapes: observations ``(2, B, T, ...)`` (``desired_goal`` holds the pair's goal), actions and reached_actions
+    ``(2, B, T, d)``, next_achieved_goals ``(2, B, T, goal_dim)``, mask ``(2, B, T)``, labels ``(B,)`` (1: tau^1
+    preferred, 0: tau^2 preferred, 0.5: tie).
+    """
+
+    observations: DictObs
+    actions: np.ndarray
+    reached_actions: np.ndarray
+    next_achieved_goals: np.ndarray
+    mask: np.ndarray
+    labels: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.labels.shape[0])
+
+    def select(self, indices: np.ndarray) -> TrajectoryPairs:
+        return TrajectoryPairs(
+            observations={key: value[:, indices] for key, value in self.observations.items()},
+            actions=self.actions[:, indices],
+            reached_actions=self.reached_actions[:, indices],
+            next_achieved_goals=self.next_achieved_goals[:, indices],
+            mask=self.mask[:, indices],
+            labels=self.labels[indices],
+        )
+
+
+def relabel_hindsight_actions(next_achieved_goals: np.ndarray, subgoal_space: SubgoalSpace) -> np.ndarray:
+    """The higher-level action that would have proposed what the option reached (HAC's hindsight action).
+
+    It does not depend on how well the lower level followed the proposed subgoal, and it is feasible by construction.
+    """
+    return subgoal_space.to_unit(subgoal_space.project(next_achieved_goals))
+
+
+def sample_trajectory_pairs(
+    buffer: TrajectoryBuffer,
+    n_pairs: int,
+    hindsight_goal_prob: float,
+    subgoal_space: SubgoalSpace,
+    rng: np.random.Generator,
+) -> TrajectoryPairs:
+    """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them."""
+    if len(buffer) < 2:
+        raise ValueError("Preference pairs need at least two finished higher-level trajectories")
+    indices = rng.integers(len(buffer), size=(2, n_pairs))
+    observations = {key: value[indices].copy() for key, value in buffer.observations.items()}
+    next_achieved_goals = buffer.next_achieved_goals[indices]
+    mask = np.stack([buffer.mask(indices[0]), buffer.mask(indices[1])])
+
+    share_goal = rng.random(n_pairs) < hindsight_goal_prob
+    source = rng.integers(2, size=n_pairs)
+    lengths = buffer.lengths[indices[source, np.arange(n_pairs)]]
+    step = (rng.random(n_pairs) * lengths).astype(np.int64)
+    hindsight_goals = next_achieved_goals[source, np.arange(n_pairs), step]
+    goals = observations["desired_goal"]
+    goals[:, share_goal] = hindsight_goals[None, share_goal, None, :]
+
+    return TrajectoryPairs(
+        observations=observations,
+        actions=buffer.actions[indices],
+        reached_actions=relabel_hindsight_actions(next_achieved_goals, subgoal_space),
+        next_achieved_goals=next_achieved_goals,
+        mask=mask,
+        labels=np.full(n_pairs, np.nan, dtype=np.float32),
+    )
+
+
+def truncate_at_first_arrival(pairs: TrajectoryPairs, goal_reached: GoalReachedFn) -> TrajectoryPairs:
+    """End both trajectories of a pair at the first option after which either of them reached the pair's goal.
+
+    The primitive-in-the-loop score of the truncated pair prefers the trajectory that arrived first (a tie when both
+    arrive together or neither arrives). Without truncation, a trajectory that passed its hindsight goal early is
+    preferred for all its later options too, although those were not steering toward that goal.
+    """
+    reached = goal_reached(pairs.next_achieved_goals, pairs.observations["desired_goal"]) & pairs.mask
+    either_reached = reached.any(axis=0)
+    horizon = pairs.mask.shape[-1]
+    first_arrival = np.where(either_reached.any(axis=-1), either_reached.argmax(axis=-1), horizon - 1)
+    keep = np.arange(horizon)[None, :] <= first_arrival[:, None]
+    return TrajectoryPairs(
+        observations=pairs.observations,
+        actions=pairs.actions,
+        reached_actions=pairs.reached_actions,
+        next_achieved_goals=pairs.next_achieved_goals,
+        mask=pairs.mask & keep[None],
+        labels=pairs.labels,
+    )
+
+
+def labels_from_scores(scores: np.ndarray) -> np.ndarray:
+    """``(2, B)`` scores to labels: 1 if tau^1 scores higher, 0 if lower, 0.5 on ties."""
+    return np.where(scores[0] > scores[1], 1.0, np.where(scores[0] < scores[1], 0.0, 0.5)).astype(np.float32)
+
+
+class PreferenceSource(ABC):
+    """Gives preference labels to trajectory pairs (a scripted labeller, an oracle, people)."""
+
+    @abstractmethod
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        """Labels in {0, 0.5, 1} for each pair (1: the first trajectory is preferred)."""
+
+
+class PrimitiveInTheLoopLabeler(PreferenceSource):
+    """Primitive-in-the-loop labels (DIPPER paper, Section 4.3): count options that ended at the goal.
+
+    :param goal_reached: ``goal_reached(achieved_goals, desired_goals)``, vectorised, True where the goal is reached
+    :param value_score: optional ``value_score(pairs) -> (2, B)`` added to the score (PIPER's lower-value term)
+    """
+
+    def __init__(self, goal_reached: GoalReachedFn, value_score: Callable[[TrajectoryPairs], np.ndarray] | None = None):
+        self.goal_reached = goal_reached
+        self.value_score = value_score
+
+    def scores(self, pairs: TrajectoryPairs) -> np.ndarray:
+        reached = self.goal_reached(pairs.next_achieved_goals, pairs.observations["desired_goal"])
+        scores = (reached.astype(np.float64) * pairs.mask).sum(axis=-1)
+        if self.value_score is not None:
+            scores = scores + self.value_score(pairs)
+        return scores
+
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        return labels_from_scores(self.scores(pairs))
+
+
+class PreferenceDataset:
+    """The labelled pairs D, filled up to a label budget; saved and loaded as npz without pickle.
+
+    :param capacity: the label budget (most pairs ever stored)
+    """
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"The preference dataset needs room for at least one pair, got capacity {capacity}")
+        self.capacity = capacity
+        self._pairs: TrajectoryPairs | None = None
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    @property
+    def remaining(self) -> int:
+        return self.capacity - self.size
+
+    def add(self, pairs: TrajectoryPairs) -> None:
+        if np.any(np.isnan(pairs.labels)):
+            raise ValueError("Only labelled pairs can be added to the preference dataset")
+        n_new = min(len(pairs), self.remaining)
+        if n_new == 0:
+            return
+        if self._pairs is None:
+            self._pairs = _allocate_like(pairs, self.capacity)
+        stored = self._pairs
+        for field in fields(TrajectoryPairs):
+            new_value = getattr(pairs, field.name)
+            if isinstance(new_value, dict):
+                for key, array in new_value.items():
+                    _write(stored.observations[key], array, self.size, n_new)
+            else:
+                _write(getattr(stored, field.name), new_value, self.size, n_new)
+        self.size += n_new
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> TrajectoryPairs:
+        if self._pairs is None or self.size == 0:
+            raise ValueError("The preference dataset is empty")
+        return self._pairs.select(rng.integers(self.size, size=batch_size))
+
+    def all_pairs(self) -> TrajectoryPairs | None:
+        return None if self._pairs is None else self._pairs.select(np.arange(self.size))
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The labelled pairs as named arrays (the npz schema of :meth:`load`)."""
+        arrays: dict[str, np.ndarray] = {"capacity": np.array(self.capacity)}
+        pairs = self.all_pairs()
+        if pairs is not None:
+            arrays.update({f"observations/{key}": value for key, value in pairs.observations.items()})
+            arrays.update(
+                actions=pairs.actions,
+                reached_actions=pairs.reached_actions,
+                next_achieved_goals=pairs.next_achieved_goals,
+                mask=pairs.mask,
+                labels=pairs.labels,
+            )
+        return arrays
+
+    def save(self, path: str | Path) -> None:
+        """Write the labelled pairs to an npz file (schema: see :meth:`load`)."""
+        np.savez_compressed(path, **self.to_arrays())  # type: ignore[arg-type]
+
+    @classmethod
+    def load(cls, path: str | Path, capacity: int | None = None) -> PreferenceDataset:
+        """Read a preference file written by :meth:`save` (or by hand, following the same schema).
+
+        Schema: ``labels (N,)`` in {0, 0.5, 1}; ``mask (2, N, T)``; ``actions``, ``reached_actions`` ``(2, N, T, d)``;
+        ``next_achieved_goals (2, N, T, goal_dim)``; ``observations/<key> (2, N, T, ...)`` for every observation key,
+        with the pair's goal in ``observations/desired_goal``; optional ``capacity`` (the label budget).
+        """
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except ValueError as error:
+            raise ValueError(f"Malformed preference file {path}: {error}") from error
+        return cls.from_arrays(arrays, capacity, str(path))
+
+    @classmethod
+    def from_arrays(
+        cls, arrays: dict[str, np.ndarray], capacity: int | None = None, source: str = "arrays"
+    ) -> PreferenceDataset:
+        """Build a dataset from :meth:`to_arrays` output, checking every array's shape."""
+        arrays = dict(arrays)
+        stored_capacity = int(arrays.pop("capacity", np.array(0)))
+        if not arrays:
+            return cls(capacity or max(stored_capacity, 1))
+        pairs = _pairs_from_arrays(arrays, source)
+        dataset = cls(capacity or max(stored_capacity, len(pairs)))
+        dataset.add(pairs)
+        return dataset
+
+
+def _allocate_like(pairs: TrajectoryPairs, capacity: int) -> TrajectoryPairs:
+    def empty(array: np.ndarray) -> np.ndarray:
+        return np.zeros((array.shape[0], capacity, *array.shape[2:]), dtype=array.dtype)
+
+    return TrajectoryPairs(
+        observations={key: empty(value) for key, value in pairs.observations.items()},
+        actions=empty(pairs.actions),
+        reached_actions=empty(pairs.reached_actions),
+        next_achieved_goals=empty(pairs.next_achieved_goals),
+        mask=empty(pairs.mask),
+        labels=np.zeros(capacity, dtype=np.float32),
+    )
+
+
+def _write(store: np.ndarray, values: np.ndarray, start: int, count: int) -> None:
+    if store.ndim == 1:
+        store[start : start + count] = values[:count]
+    else:
+        store[:, start : start + count] = values[:, :count]
+
+
+def _pairs_from_arrays(arrays: dict[str, np.ndarray], source: str) -> TrajectoryPairs:
+    required = ["labels", "mask", "actions", "reached_actions", "next_achieved_goals", "observations/desired_goal"]
+    missing = [key for key in required if key not in arrays]
+    if missing:
+        raise ValueError(f"Malformed preference file {source}: missing {missing}")
+    observation_keys = [key.split("/", 1)[1] for key in arrays if key.startswith("observations/")]
+    labels = arrays["labels"].astype(np.float32)
+    n_pairs = labels.shape[0]
+    if labels.ndim != 1 or not np.all(np.isin(labels, (0.0, 0.5, 1.0))):
+        raise ValueError(f"Malformed preference file {source}: labels must be a vector of 0, 0.5 or 1")
+    mask = arrays["mask"]
+    if mask.ndim != 3 or mask.shape[:2] != (2, n_pairs):
+        raise ValueError(f"Malformed preference file {source}: mask must have shape (2, {n_pairs}, T), got {mask.shape}")
+    horizon = mask.shape[2]
+    for key in ["actions", "reached_actions", "next_achieved_goals"] + [f"observations/{k}" for k in observation_keys]:
+        if arrays[key].shape[:3] != (2, n_pairs, horizon):
+            raise ValueError(
+                f"Malformed preference file {source}: {key} must start with shape (2, {n_pairs}, {horizon}), "
+                f"got {arrays[key].shape}"
+            )
+    return TrajectoryPairs(
+        observations={key: arrays[f"observations/{key}"].astype(np.float32) for key in observation_keys},
+        actions=arrays["actions"].astype(np.float32),
+        reached_actions=arrays["reached_actions"].astype(np.float32),
+        next_achieved_goals=arrays["next_achieved_goals"].astype(np.float32),
+        mask=mask.astype(bool),
+        labels=labels,
+    )

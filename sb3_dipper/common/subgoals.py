@@ -1,0 +1,143 @@
+"""Subgoal spaces: what part of an environment's achieved goal the higher level controls.
+
+A higher-level action ``u`` lives in ``[-1, 1]^d``; :meth:`SubgoalSpace.to_world` maps it to a subgoal ``g`` in world
+coordinates inside ``[low, high]``. The lower level is rewarded (sparse ``-1 / 0``) for bringing the projected
+achieved goal within ``threshold`` of ``g``.
+
+Env modules declare their space, either as an attribute ``subgoal_space`` of the unwrapped env or through
+:func:`register_subgoal_space` for env ids we do not own. :func:`resolve_subgoal_space` finds it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnv
+
+
+@dataclass(frozen=True, eq=False)
+class SubgoalSpace:
+    """A box of subgoals over (a projection of) the achieved goal.
+
+    :param low: lower corner of the subgoal box, in world coordinates
+    :param high: upper corner of the subgoal box, in world coordinates
+    :param threshold: distance under which the lower level has reached its subgoal
+    :param indices: which entries of ``achieved_goal`` a subgoal controls (``None``: all of them)
+    """
+
+    low: np.ndarray
+    high: np.ndarray
+    threshold: float
+    indices: tuple[int, ...] | None = None
+    _span: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        low = np.asarray(self.low, dtype=np.float64).reshape(-1)
+        high = np.asarray(self.high, dtype=np.float64).reshape(-1)
+        if low.shape != high.shape:
+            raise ValueError(f"SubgoalSpace low {low.shape} and high {high.shape} must have the same shape")
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
+            raise ValueError(f"SubgoalSpace needs finite bounds with high > low, got low={low}, high={high}")
+        if self.indices is not None and len(self.indices) != low.size:
+            raise ValueError(f"SubgoalSpace has {low.size} dimensions but {len(self.indices)} indices")
+        if self.threshold <= 0:
+            raise ValueError(f"SubgoalSpace threshold must be positive, got {self.threshold}")
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+        object.__setattr__(self, "_span", high - low)
+
+    @property
+    def dim(self) -> int:
+        return int(self.low.size)
+
+    @property
+    def unit_box(self) -> spaces.Box:
+        """The higher-level action space."""
+        return spaces.Box(-1.0, 1.0, shape=(self.dim,), dtype=np.float32)
+
+    @property
+    def world_box(self) -> spaces.Box:
+        """The subgoal space in world coordinates (the lower level's ``desired_goal``)."""
+        return spaces.Box(self.low.astype(np.float32), self.high.astype(np.float32), dtype=np.float32)
+
+    def to_world(self, unit_actions: np.ndarray) -> np.ndarray:
+        """Map higher-level actions in ``[-1, 1]^d`` to subgoals."""
+        unit_actions = np.clip(unit_actions, -1.0, 1.0)
+        return (self.low + 0.5 * (unit_actions + 1.0) * self._span).astype(np.float32)
+
+    def to_world_tensor(self, unit_actions: th.Tensor) -> th.Tensor:
+        """:meth:`to_world` for torch tensors, differentiable in ``unit_actions``."""
+        low = th.as_tensor(self.low, dtype=unit_actions.dtype, device=unit_actions.device)
+        span = th.as_tensor(self._span, dtype=unit_actions.dtype, device=unit_actions.device)
+        return low + 0.5 * (unit_actions.clamp(-1.0, 1.0) + 1.0) * span
+
+    def to_unit(self, subgoals: np.ndarray) -> np.ndarray:
+        """Map subgoals back to ``[-1, 1]^d`` (clipped to the box)."""
+        return np.clip(2.0 * (subgoals - self.low) / self._span - 1.0, -1.0, 1.0).astype(np.float32)
+
+    def project(self, achieved_goal: np.ndarray) -> np.ndarray:
+        """The part of an achieved goal that a subgoal controls."""
+        if self.indices is None:
+            return achieved_goal
+        return achieved_goal[..., list(self.indices)]
+
+    def distance(self, achieved_subgoal: np.ndarray, subgoal: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.asarray(achieved_subgoal) - np.asarray(subgoal), axis=-1)
+
+    def compute_reward(self, achieved_subgoal: np.ndarray, subgoal: np.ndarray, _info: Any = None) -> np.ndarray:
+        """Sparse lower-level reward, vectorised over the leading dimensions: 0 when reached, -1 otherwise."""
+        return -(self.distance(achieved_subgoal, subgoal) > self.threshold).astype(np.float32)
+
+
+SubgoalSpaceFactory = Callable[[gym.Env], SubgoalSpace]
+_REGISTRY: dict[str, SubgoalSpaceFactory] = {}
+
+
+def register_subgoal_space(env_id: str, factory: SubgoalSpaceFactory) -> None:
+    """Declare the subgoal space of an env id that does not carry a ``subgoal_space`` attribute itself."""
+    _REGISTRY[env_id] = factory
+
+
+def registered_subgoal_space(env_id: str) -> SubgoalSpaceFactory | None:
+    return _REGISTRY.get(env_id)
+
+
+def _default_from_goal_space(goal_space: spaces.Box, threshold: float | None) -> SubgoalSpace | None:
+    if threshold is None or not (np.all(np.isfinite(goal_space.low)) and np.all(np.isfinite(goal_space.high))):
+        return None
+    return SubgoalSpace(goal_space.low, goal_space.high, threshold)
+
+
+def resolve_subgoal_space(venv: VecEnv, subgoal_space: SubgoalSpace | None = None) -> SubgoalSpace:
+    """Find the subgoal space of a vectorised goal env.
+
+    Order: the one given, the env's ``subgoal_space`` attribute, the registry (by env id), and last a box over the
+    ``achieved_goal`` bounds with the env's ``distance_threshold`` when both are finite.
+    """
+    if subgoal_space is not None:
+        return subgoal_space
+    if venv.has_attr("subgoal_space"):
+        declared = venv.get_attr("subgoal_space", indices=[0])[0]
+        if isinstance(declared, SubgoalSpace):
+            return declared
+    spec = venv.get_attr("spec", indices=[0])[0]
+    env_id = getattr(spec, "id", None)
+    factory = registered_subgoal_space(env_id) if env_id is not None else None
+    if factory is not None:
+        return factory(venv.get_attr("unwrapped", indices=[0])[0])
+    goal_space = venv.observation_space["achieved_goal"]  # type: ignore[index]
+    threshold = venv.get_attr("distance_threshold", indices=[0])[0] if venv.has_attr("distance_threshold") else None
+    default = _default_from_goal_space(goal_space, threshold)
+    if default is not None:
+        return default
+    raise ValueError(
+        f"No subgoal space is known for env {env_id!r}: its achieved_goal bounds are not finite. "
+        "Pass `subgoal_space=SubgoalSpace(low, high, threshold)` to the algorithm, give the env a `subgoal_space` "
+        "attribute, or call `sb3_dipper.register_subgoal_space(env_id, factory)`."
+    )

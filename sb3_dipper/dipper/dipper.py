@@ -1,0 +1,392 @@
+"""DIPPER: direct preference optimization of the higher level of a two-level hierarchy.
+
+Paper: "Direct Preference Optimization for Primitive-Enabled Hierarchical RL: A Bilevel Approach"
+(Singh et al., ICLR 2026, https://arxiv.org/abs/2411.00361). No official code is public; the nearest relative is the
+authors' PIPER code (https://github.com/Utsavz/piper), from which the preference machinery follows.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import obs_as_tensor
+
+from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
+from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
+from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
+from sb3_dipper.common.option_env import DictObs, low_level_observation
+from sb3_dipper.common.preferences import (
+    PreferenceDataset,
+    PreferenceSource,
+    PrimitiveInTheLoopLabeler,
+    TrajectoryPairs,
+    sample_trajectory_pairs,
+    truncate_at_first_arrival,
+)
+from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.trajectories import TrajectoryBuffer
+from sb3_dipper.common.validation import sparse_goal_reached_fn
+from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
+
+SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
+
+VALUE_REGULARIZERS = ("paper", "score", "reparam")
+# Label at most this many new pairs per training round, so labelling never stalls a round.
+MAX_NEW_PAIRS_PER_ROUND = 256
+
+
+class DIPPER(HierarchicalAlgorithm):
+    """DIPPER (Singh et al., ICLR 2026): the higher level learns subgoals from preferences by DPO, the lower by SAC+HER.
+
+    The higher level is a squashed-Gaussian policy over subgoals trained only by the DIPPER loss (Eq. 9,
+    ``bt_log_sig_2_practical``, of the DIPPER paper) on pairs of higher-level trajectories labelled primitive-in-the-loop
+    (Section 4.3). There is no reference policy (a uniform reference: max-entropy token-level DPO). The lower level is
+    an SB3 ``SAC`` with ``HerReplayBuffer`` over subgoals (see :class:`HierarchicalAlgorithm` for its parameters).
+
+    :param policy: the higher-level policy (``"MlpPolicy"`` or ``"MultiInputPolicy"``, the same class)
+    :param env: a goal env (Dict observations with ``observation``, ``achieved_goal``, ``desired_goal``)
+    :param learning_rate: learning rate of the higher-level policy
+    :param option_steps: K, primitive steps per subgoal
+    :param subgoal_space: subgoal space (default: the env's declared one)
+    :param beta: beta, the weight of the policy log-ratios in the DPO logit (Eq. 9)
+    :param value_reg_coef: lambda, the weight of the lower-value regulariser (0: DIPPER-No-V)
+    :param value_steps: m, lower critic gradient steps between ``V^L`` and ``V^L_m`` (``value_reg="paper"``)
+    :param value_reg: how lambda enters: ``"paper"`` (Eq. 9: ``-lambda * sum_t (V^L - V^L_m)`` in the DPO logit),
+        ``"score"`` (the PIPER code: ``lambda * sum_t V^L(s_t, g_t)`` added to the preference score at labelling), or
+        ``"reparam"`` (``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss, a differentiable feasibility term)
+    :param n_preference_pairs: the label budget: pairs labelled over the whole run, spread over training
+    :param pairs_per_batch: preference pairs per higher-level gradient step
+    :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
+    :param random_subgoal_prob: probability of a uniformly random subgoal during training (exploration)
+    :param high_gradient_steps: higher-level gradient steps per option
+    :param nll_coef: weight of the preferred trajectory's negative log-likelihood added to the loss (RPO-style; 0: off)
+    :param hindsight_actions: train on the subgoal each option actually reached instead of the one proposed
+    :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
+    :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
+    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward)
+    :param buffer_size: lower-level replay buffer size
+    :param learning_starts: primitive steps of random subgoals and lower actions before learning
+    :param batch_size: lower-level minibatch size
+    :param tau: lower-level target smoothing coefficient
+    :param gamma: lower-level discount factor
+    :param train_freq: lower-level training frequency (primitive vec-env steps)
+    :param gradient_steps: lower-level gradient steps per training round
+    :param ent_coef: lower-level entropy coefficient
+    :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
+    :param low_learning_rate: lower-level learning rate
+    :param low_policy_kwargs: lower SAC ``policy_kwargs``
+    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param max_episode_steps: base episode length (default: the env's time limit)
+    :param policy_kwargs: higher-level policy kwargs (``net_arch``, ``acting_tau``, ...)
+    :param stats_window_size: window of rollout statistics
+    :param tensorboard_log: tensorboard folder
+    :param verbose: verbosity
+    :param seed: random seed
+    :param device: torch device
+    :param _init_setup_model: build the networks now
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
+    policy: DIPPERPolicy
+
+    def __init__(
+        self,
+        policy: str | type[DIPPERPolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 1e-3,
+        option_steps: int = 30,
+        subgoal_space: SubgoalSpace | None = None,
+        beta: float = 0.1,
+        value_reg_coef: float = 0.1,
+        value_steps: int = 30,
+        value_reg: str = "paper",
+        n_preference_pairs: int = 10_000,
+        pairs_per_batch: int = 64,
+        hindsight_goal_prob: float = 0.8,
+        random_subgoal_prob: float = 0.2,
+        high_gradient_steps: int = 1,
+        nll_coef: float = 0.0,
+        hindsight_actions: bool = False,
+        truncate_at_goal: bool = False,
+        trajectory_buffer_size: int = 5000,
+        preference_source: PreferenceSource | None = None,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 3000,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.95,
+        train_freq: int = 1,
+        gradient_steps: int = 1,
+        ent_coef: str | float = "auto",
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        low_learning_rate: float | Schedule = 1e-3,
+        low_policy_kwargs: dict[str, Any] | None = None,
+        low_level_kwargs: dict[str, Any] | None = None,
+        max_episode_steps: int | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            option_steps=option_steps,
+            subgoal_space=subgoal_space,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            ent_coef=ent_coef,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            low_learning_rate=low_learning_rate,
+            low_policy_kwargs=low_policy_kwargs,
+            low_level_kwargs=low_level_kwargs,
+            random_subgoal_prob=random_subgoal_prob,
+            max_episode_steps=max_episode_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
+        if value_reg not in VALUE_REGULARIZERS:
+            raise ValueError(f"Unknown value_reg {value_reg!r}: choose one of {VALUE_REGULARIZERS}")
+        if not 0.0 <= hindsight_goal_prob <= 1.0:
+            raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
+        self.beta = beta
+        self.value_reg_coef = value_reg_coef
+        self.value_steps = value_steps
+        self.value_reg = value_reg
+        self.n_preference_pairs = n_preference_pairs
+        self.pairs_per_batch = pairs_per_batch
+        self.hindsight_goal_prob = hindsight_goal_prob
+        self.high_gradient_steps = high_gradient_steps
+        self.nll_coef = nll_coef
+        self.hindsight_actions = hindsight_actions
+        self.truncate_at_goal = truncate_at_goal
+        self.trajectory_buffer_size = trajectory_buffer_size
+        self.preference_source = preference_source
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_high_level(self) -> None:
+        assert self.subgoal_space is not None
+        self.policy = self.policy_class(  # type: ignore[assignment]
+            self.observation_space, self.subgoal_space.unit_box, self.lr_schedule, **self.policy_kwargs
+        ).to(self.device)
+        self.trajectory_buffer = TrajectoryBuffer(
+            self.trajectory_buffer_size,
+            self.high_steps,
+            self.observation_space,  # type: ignore[arg-type]
+            self.subgoal_space.dim,
+            self.n_envs,
+        )
+        self.preferences = PreferenceDataset(self.n_preference_pairs)
+        self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
+        self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
+        self._value_snapshot_updates = self.lower._n_updates
+        self._labeler: PreferenceSource | None = self.preference_source
+        if self.env is not None:
+            self._goal_reached = sparse_goal_reached_fn(self.env)
+            if self._labeler is None:
+                value_score = self._pair_value_score if self.value_reg == "score" else None
+                self._labeler = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
+
+    def learn(
+        self: SelfDIPPER,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "DIPPER",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfDIPPER:
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+
+    # ---------------------------------------------------------------------------------------------------- acting
+
+    def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
+        actions, _ = self.policy.predict(observation, deterministic=deterministic)  # type: ignore[arg-type]
+        return np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
+
+    def _store_option(
+        self,
+        start_obs: DictObs,
+        high_actions: np.ndarray,
+        new_obs: DictObs,
+        rewards: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        assert self.option_env is not None and self.option_env.reached_obs is not None
+        self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
+
+    def _end_open_episodes(self) -> None:
+        super()._end_open_episodes()
+        self.trajectory_buffer.discard_open()
+
+    # ---------------------------------------------------------------------------------------------------- training
+
+    def train(self) -> None:
+        """Lower SAC updates (which also move V^L toward V^L_m), new labels, then the higher-level DIPPER updates."""
+        self._train_low_level()
+        self._label_new_pairs()
+        if len(self.preferences) == 0:
+            return
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.actor.optimizer)
+        dpo_losses, nll_losses, accuracies, value_gaps = [], [], [], []
+        for _ in range(self.high_gradient_steps):
+            pairs = self.preferences.sample(self.pairs_per_batch, self._rng)
+            observations, actions, mask, labels = self._pair_tensors(pairs)
+
+            # Eq. 9: log pi^H of every stored higher-level action, minus lambda * (V^L - V^L_m) per step.
+            log_probs = self.policy.log_prob(observations, actions.reshape(-1, actions.shape[-1])).reshape(mask.shape)
+            gaps = self._value_gaps(pairs) if self.value_reg == "paper" and self.value_reg_coef != 0.0 else None
+            dpo, logits = dipper_loss(log_probs, mask, labels, self.beta, self._reference_log_prob, gaps, self.value_reg_coef)
+            loss = dpo
+
+            # Optional: the preferred side's likelihood (RPO-style), against likelihood displacement.
+            if self.nll_coef > 0.0:
+                nll = preferred_nll(log_probs, mask, labels)
+                loss = loss + self.nll_coef * nll
+                nll_losses.append(nll.item())
+
+            # Optional: push proposals toward subgoals the lower level values (value_reg="reparam").
+            if self.value_reg == "reparam" and self.value_reg_coef != 0.0:
+                loss = loss - self.value_reg_coef * self._reparameterised_low_value(pairs, observations).mean()
+
+            self.policy.actor.optimizer.zero_grad()
+            loss.backward()
+            self.policy.actor.optimizer.step()
+            self.policy.update_averaged_actor()
+
+            dpo_losses.append(dpo.item())
+            strict = labels != 0.5
+            if bool(strict.any()):
+                accuracies.append(((logits[strict] > 0) == (labels[strict] > 0.5)).float().mean().item())
+            if gaps is not None:
+                value_gaps.append((gaps * mask).sum().item() / max(mask.sum().item(), 1.0))
+        self._refresh_value_snapshot()
+        self._n_updates += self.high_gradient_steps
+        self.logger.record("train/high_n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/high_dpo_loss", float(np.mean(dpo_losses)))
+        self.logger.record("train/high_preference_pairs", len(self.preferences))
+        if nll_losses:
+            self.logger.record("train/high_nll", float(np.mean(nll_losses)))
+        if accuracies:
+            self.logger.record("train/high_pref_accuracy", float(np.mean(accuracies)))
+        if value_gaps:
+            self.logger.record("train/high_value_gap", float(np.mean(value_gaps)))
+
+    def _label_new_pairs(self) -> None:
+        """Label new pairs so the dataset grows in step with training, up to the label budget."""
+        assert self.subgoal_space is not None and self._labeler is not None
+        progress = min(1.0, self.num_timesteps / max(self._total_timesteps, 1))
+        wanted = max(1, int(self.n_preference_pairs * progress)) - len(self.preferences)
+        n_new = min(wanted, MAX_NEW_PAIRS_PER_ROUND, self.preferences.remaining)
+        if n_new <= 0 or len(self.trajectory_buffer) < 2:
+            return
+        pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
+        if self.truncate_at_goal:
+            pairs = truncate_at_first_arrival(pairs, self._goal_reached)
+        pairs.labels = self._labeler.label(pairs)
+        self.preferences.add(pairs)
+
+    def _pair_actions(self, pairs: TrajectoryPairs) -> np.ndarray:
+        return pairs.reached_actions if self.hindsight_actions else pairs.actions
+
+    def _pair_tensors(self, pairs: TrajectoryPairs) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, th.Tensor]:
+        """Flattened (normalised) observations of both trajectories, their actions, mask and labels as tensors."""
+        flat_obs = {key: value.reshape(-1, *value.shape[3:]) for key, value in pairs.observations.items()}
+        if self._vec_normalize_env is not None:
+            flat_obs = self._vec_normalize_env.normalize_obs(flat_obs)  # type: ignore[assignment]
+        observations = obs_as_tensor(flat_obs, self.device)  # type: ignore[arg-type]
+        actions = th.as_tensor(self._pair_actions(pairs), device=self.device)
+        mask = th.as_tensor(pairs.mask, device=self.device)
+        labels = th.as_tensor(pairs.labels, device=self.device)
+        return observations, actions, mask, labels  # type: ignore[return-value]
+
+    def _pair_low_obs(self, pairs: TrajectoryPairs, actions: np.ndarray) -> dict[str, th.Tensor]:
+        """Lower-level observations (s_t, g_t) of every step of both trajectories, g_t the subgoal of ``actions``."""
+        assert self.subgoal_space is not None
+        flat_obs = {key: value.reshape(-1, *value.shape[3:]) for key, value in pairs.observations.items()}
+        subgoals = self.subgoal_space.to_world(actions.reshape(-1, actions.shape[-1]))
+        return self.low_level.tensor_obs(low_level_observation(flat_obs, subgoals, self.subgoal_space))
+
+    def _value_gaps(self, pairs: TrajectoryPairs) -> th.Tensor:
+        """Per-step ``V^L(s_t, g_t) - V^L_m(s_t, g_t)`` of both trajectories, shape ``(2, B, T)``, no gradient."""
+        with th.no_grad():
+            gaps = sac_value_gap(self.lower, self._value_snapshot, self._pair_low_obs(pairs, self._pair_actions(pairs)))
+        return gaps.reshape(pairs.mask.shape)
+
+    def _refresh_value_snapshot(self) -> None:
+        """Once the lower critic is ``value_steps`` updates past the snapshot, the current critic becomes the snapshot."""
+        if self.lower._n_updates - self._value_snapshot_updates >= self.value_steps:
+            self._value_snapshot.load_state_dict(self.lower.critic.state_dict())
+            self._value_snapshot_updates = self.lower._n_updates
+
+    def _pair_value_score(self, pairs: TrajectoryPairs) -> np.ndarray:
+        """PIPER's label-time term: ``lambda * sum_t V^L(s_t, g_t)`` for each trajectory, shape ``(2, B)``."""
+        with th.no_grad():
+            values = sac_state_value(self.lower, self._pair_low_obs(pairs, pairs.actions)).cpu().numpy()
+        return self.value_reg_coef * (values.reshape(pairs.mask.shape) * pairs.mask).sum(axis=-1)
+
+    def _reparameterised_low_value(self, pairs: TrajectoryPairs, observations: dict[str, th.Tensor]) -> th.Tensor:
+        """``V^L(s, g(u))`` for ``u ~ pi^H(.|s, g*)`` (reparameterised, so it has a gradient), at the pairs' real steps."""
+        assert self.subgoal_space is not None
+        actions, _ = self.policy.sample_with_log_prob(observations)
+        low_obs = self._pair_low_obs(pairs, pairs.actions)
+        low_obs["desired_goal"] = self.low_level.normalize_subgoal_tensor(self.subgoal_space.to_world_tensor(actions))
+        self.lower.policy.requires_grad_(False)
+        values = sac_state_value(self.lower, low_obs)
+        self.lower.policy.requires_grad_(True)
+        return values[th.as_tensor(pairs.mask.reshape(-1), device=self.device)]
+
+    # ---------------------------------------------------------------------------------------------------- saving
+
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "trajectory_buffer",
+            "preferences",
+            "_labeler",
+            "_goal_reached",
+            "_value_snapshot",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, variables = super()._get_torch_save_params()
+        return ["policy", "policy.actor.optimizer", *state_dicts], variables
+
+    def _save_high_level_data(self, path: str) -> None:
+        """Trajectories and labelled pairs, as npz (read back without pickle)."""
+        arrays = {f"trajectories/{key}": value for key, value in self.trajectory_buffer.state_dict().items()}
+        arrays.update({f"preferences/{key}": value for key, value in self.preferences.to_arrays().items()})
+        np.savez_compressed(sibling_path(path, ".high.npz"), **arrays)  # type: ignore[arg-type]
+
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
+        with np.load(sibling_path(path, ".high.npz"), allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+        self.trajectory_buffer.load_state_dict(_with_prefix(arrays, "trajectories/"))
+        self.preferences = PreferenceDataset.from_arrays(
+            _with_prefix(arrays, "preferences/"), self.n_preference_pairs, "the replay-buffer checkpoint"
+        )
+
+
+def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {key.removeprefix(prefix): value for key, value in arrays.items() if key.startswith(prefix)}

@@ -1,0 +1,142 @@
+"""DIPPER's higher-level policy: a squashed-Gaussian actor over subgoals in ``[-1, 1]^d``, no critic.
+
+It is SB3's SAC ``Actor`` (same parameterisation: MLP trunk, mean and log-std heads, log-std clipped to [-20, 2],
+``tanh`` squashing), trained only by the DIPPER loss. :meth:`DIPPERPolicy.log_prob` gives the log-density of stored
+actions, which the preference loss needs and SB3's actor does not offer.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.sac.policies import Actor
+from torch import nn
+
+from sb3_dipper.common.losses import squashed_gaussian_log_prob
+
+
+class DIPPERPolicy(BasePolicy):
+    """Squashed-Gaussian higher-level policy.
+
+    :param observation_space: the base env's observation space (a goal env's Dict space)
+    :param action_space: the higher-level action space ``[-1, 1]^d``
+    :param lr_schedule: learning-rate schedule of the policy optimizer
+    :param net_arch: hidden layer sizes of the actor
+    :param activation_fn: activation function
+    :param log_std_init: unused by the state-dependent log-std head; kept for SAC compatibility
+    :param features_extractor_class: features extractor (default: ``CombinedExtractor`` for Dict spaces)
+    :param features_extractor_kwargs: its keyword arguments
+    :param normalize_images: whether to divide image observations by 255
+    :param optimizer_class: optimizer class
+    :param optimizer_kwargs: optimizer keyword arguments
+    :param acting_tau: when below 1, the policy acts with a Polyak average of the trained actor (``tau`` per update)
+    """
+
+    actor: Actor
+    averaged_actor: Actor | None
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: list[int] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        log_std_init: float = -3,
+        features_extractor_class: type[BaseFeaturesExtractor] | None = None,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        acting_tau: float = 1.0,
+    ):
+        if features_extractor_class is None:
+            features_extractor_class = CombinedExtractor if isinstance(observation_space, spaces.Dict) else FlattenExtractor
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor_class,
+            features_extractor_kwargs,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=True,
+            normalize_images=normalize_images,
+        )
+        if not 0.0 < acting_tau <= 1.0:
+            raise ValueError(f"acting_tau must be in (0, 1], got {acting_tau}")
+        self.net_arch = [256, 256] if net_arch is None else net_arch
+        self.activation_fn = activation_fn
+        self.log_std_init = log_std_init
+        self.acting_tau = acting_tau
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        features_extractor = self.make_features_extractor()
+        self.actor = Actor(
+            self.observation_space,
+            self.action_space,  # type: ignore[arg-type]
+            net_arch=self.net_arch,
+            features_extractor=features_extractor,
+            features_dim=features_extractor.features_dim,
+            activation_fn=self.activation_fn,
+            normalize_images=self.normalize_images,
+        )
+        self.actor.optimizer = self.optimizer_class(
+            self.actor.parameters(),
+            lr=lr_schedule(1),
+            **self.optimizer_kwargs,  # type: ignore[call-arg]
+        )
+        # With acting_tau < 1 the policy acts with a slow Polyak average of the trained actor.
+        self.averaged_actor = copy.deepcopy(self.actor).requires_grad_(False) if self.acting_tau < 1.0 else None
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            dict(
+                net_arch=self.net_arch,
+                activation_fn=self.activation_fn,
+                log_std_init=self.log_std_init,
+                features_extractor_class=self.features_extractor_class,
+                features_extractor_kwargs=self.features_extractor_kwargs,
+                optimizer_class=self.optimizer_class,
+                optimizer_kwargs=self.optimizer_kwargs,
+                acting_tau=self.acting_tau,
+                lr_schedule=self._dummy_schedule,
+            )
+        )
+        return data
+
+    def log_prob(self, observation: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """Log-probability of stored higher-level actions under the trained actor, shape ``(N,)``."""
+        mean_actions, log_std, _ = self.actor.get_action_dist_params(observation)
+        return squashed_gaussian_log_prob(mean_actions, log_std, actions)
+
+    def sample_with_log_prob(self, observation: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
+        """Reparameterised actions of the trained actor and their log-probabilities."""
+        return self.actor.action_log_prob(observation)
+
+    def update_averaged_actor(self) -> None:
+        if self.averaged_actor is not None:
+            polyak_update(self.actor.parameters(), self.averaged_actor.parameters(), self.acting_tau)
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        acting = self.actor if self.averaged_actor is None else self.averaged_actor
+        return acting(observation, deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        self.actor.set_training_mode(mode)
+        self.training = mode
+
+
+MlpPolicy = DIPPERPolicy
+MultiInputPolicy = DIPPERPolicy

@@ -1,0 +1,288 @@
+"""HIER: vanilla two-level SAC with HER at both levels, the DIPPER paper's plain hierarchical baseline.
+
+The higher level is an SB3 ``SAC`` over subgoals in ``[-1, 1]^d`` whose reward is the environment's sparse reward at
+the end of each option, with ``HerReplayBuffer`` relabelling final goals; the lower level is the shared SAC+HER on
+subgoals. Its higher-level transitions depend on the lower level's current behaviour: the non-stationarity DIPPER's
+preferences avoid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar, TypeVar
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import SAC
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
+from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
+
+from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, has_finished_episode, sibling_path
+from sb3_dipper.common.low_level import LevelLogger
+from sb3_dipper.common.option_env import DictObs
+from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.hier.policies import MlpPolicy, MultiInputPolicy
+
+SelfHIER = TypeVar("SelfHIER", bound="HIER")
+
+
+class OptionGoalVecEnv(VecEnv):
+    """The higher level's goal env as SB3 sees it: base observations, unit actions, the base ``compute_reward``.
+
+    Never stepped (the option layer drives the envs); ``compute_reward`` is forwarded to the base env, which HER needs.
+
+    :param observation_space: the base env's observation space
+    :param action_space: the higher-level action space
+    :param base_env: the base VecEnv (``None`` when the model was loaded only to predict)
+    :param num_envs: number of parallel envs
+    """
+
+    def __init__(self, observation_space: spaces.Dict, action_space: spaces.Box, base_env: VecEnv | None, num_envs: int):
+        super().__init__(num_envs, observation_space, action_space)
+        self.base_env = base_env
+
+    def _not_stepped(self) -> RuntimeError:
+        return RuntimeError("The higher level's env is driven by the option layer; it cannot be reset or stepped directly.")
+
+    def reset(self) -> VecEnvObs:
+        raise self._not_stepped()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        raise self._not_stepped()
+
+    def step_wait(self) -> VecEnvStepReturn:
+        raise self._not_stepped()
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
+    ) -> list[Any]:
+        if self.base_env is None:
+            raise RuntimeError("This model was loaded without an env: pass env=... to load() to train it.")
+        return self.base_env.env_method(method_name, *method_args, indices=indices, **method_kwargs)
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        return [None for _ in range(self.num_envs)]
+
+
+class HIER(HierarchicalAlgorithm):
+    """HIER: two-level SAC, HER at both levels (the "HIER" baseline of the DIPPER paper and of the authors' PIPER code).
+
+    The lower-level parameters are those of :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`; the
+    ``high_*`` parameters configure the higher SAC, which trains ``high_gradient_steps`` times per option.
+
+    :param policy: the higher SAC's policy (``"MlpPolicy"`` or ``"MultiInputPolicy"``: SAC's ``MultiInputPolicy``)
+    :param env: a goal env
+    :param learning_rate: learning rate of the higher SAC
+    :param option_steps: K, primitive steps per subgoal
+    :param subgoal_space: subgoal space (default: the env's declared one)
+    :param high_buffer_size: higher replay buffer size (options)
+    :param high_batch_size: higher minibatch size
+    :param high_gamma: higher discount factor (per option)
+    :param high_tau: higher target smoothing coefficient
+    :param high_ent_coef: higher entropy coefficient
+    :param high_gradient_steps: higher gradient steps per option
+    :param high_replay_buffer_kwargs: higher ``HerReplayBuffer`` kwargs
+    :param random_subgoal_prob: probability of a uniformly random subgoal during training
+    :param buffer_size: lower replay buffer size
+    :param learning_starts: primitive steps of random subgoals and lower actions before learning
+    :param batch_size: lower minibatch size
+    :param tau: lower target smoothing coefficient
+    :param gamma: lower discount factor
+    :param train_freq: lower training frequency (primitive vec-env steps)
+    :param gradient_steps: lower gradient steps per training round
+    :param ent_coef: lower entropy coefficient
+    :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
+    :param low_learning_rate: lower learning rate
+    :param low_policy_kwargs: lower SAC ``policy_kwargs``
+    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param max_episode_steps: base episode length (default: the env's time limit)
+    :param policy_kwargs: higher SAC ``policy_kwargs``
+    :param stats_window_size: window of rollout statistics
+    :param tensorboard_log: tensorboard folder
+    :param verbose: verbosity
+    :param seed: random seed
+    :param device: torch device
+    :param _init_setup_model: build the networks now
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
+    higher: SAC
+
+    def __init__(
+        self,
+        policy: str | type[BasePolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 1e-3,
+        option_steps: int = 20,
+        subgoal_space: SubgoalSpace | None = None,
+        high_buffer_size: int = 100_000,
+        high_batch_size: int = 256,
+        high_gamma: float = 0.95,
+        high_tau: float = 0.005,
+        high_ent_coef: str | float = "auto",
+        high_gradient_steps: int = 1,
+        high_replay_buffer_kwargs: dict[str, Any] | None = None,
+        random_subgoal_prob: float = 0.0,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 3000,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.95,
+        train_freq: int = 1,
+        gradient_steps: int = 1,
+        ent_coef: str | float = "auto",
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        low_learning_rate: float | Schedule = 1e-3,
+        low_policy_kwargs: dict[str, Any] | None = None,
+        low_level_kwargs: dict[str, Any] | None = None,
+        max_episode_steps: int | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            option_steps=option_steps,
+            subgoal_space=subgoal_space,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            ent_coef=ent_coef,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            low_learning_rate=low_learning_rate,
+            low_policy_kwargs=low_policy_kwargs,
+            low_level_kwargs=low_level_kwargs,
+            random_subgoal_prob=random_subgoal_prob,
+            max_episode_steps=max_episode_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+        )
+        self.high_buffer_size = high_buffer_size
+        self.high_batch_size = high_batch_size
+        self.high_gamma = high_gamma
+        self.high_tau = high_tau
+        self.high_ent_coef = high_ent_coef
+        self.high_gradient_steps = high_gradient_steps
+        self.high_replay_buffer_kwargs = {} if high_replay_buffer_kwargs is None else high_replay_buffer_kwargs
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_high_level(self) -> None:
+        assert self.subgoal_space is not None
+        high_env = OptionGoalVecEnv(self.observation_space, self.subgoal_space.unit_box, self.env, self.n_envs)  # type: ignore[arg-type]
+        self.higher = SAC(
+            self.policy_class,  # type: ignore[arg-type]
+            high_env,
+            learning_rate=self.learning_rate,
+            buffer_size=self.high_buffer_size if self.env is not None else 16 * self.n_envs,
+            learning_starts=0,
+            batch_size=self.high_batch_size,
+            tau=self.high_tau,
+            gamma=self.high_gamma,
+            ent_coef=self.high_ent_coef,
+            replay_buffer_class=HerReplayBuffer,
+            replay_buffer_kwargs=self.high_replay_buffer_kwargs,
+            policy_kwargs=self.policy_kwargs,
+            device=self.device,
+        )
+        self.higher._vec_normalize_env = self._vec_normalize_env
+        self.policy = self.higher.policy
+
+    def learn(
+        self: SelfHIER,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "HIER",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfHIER:
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+
+    def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
+        actions, _ = self.higher.policy.predict(observation, deterministic=deterministic)  # type: ignore[arg-type]
+        return np.asarray(actions, dtype=np.float32).reshape(-1, self.higher.action_space.shape[0])  # type: ignore[index]
+
+    def _store_option(
+        self,
+        start_obs: DictObs,
+        high_actions: np.ndarray,
+        new_obs: DictObs,
+        rewards: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """One higher-level transition per env: (s_t, u_t, r^H = env reward at the option's end, s_{t+K})."""
+        assert self.option_env is not None and self.option_env.reached_obs is not None
+        reward = self._vec_normalize_env.get_original_reward() if self._vec_normalize_env is not None else rewards
+        buffer = self.higher.replay_buffer
+        assert isinstance(buffer, HerReplayBuffer)
+        buffer.add(start_obs, self.option_env.reached_obs, high_actions, reward, dones, infos)
+
+    def _end_open_episodes(self) -> None:
+        super()._end_open_episodes()
+        buffer = self.higher.replay_buffer
+        if isinstance(buffer, HerReplayBuffer) and (buffer._current_ep_start != buffer.pos).any():
+            buffer.truncate_last_trajectory()
+
+    def _has_training_data(self) -> bool:
+        return super()._has_training_data() and has_finished_episode(self.higher.replay_buffer)
+
+    def train(self) -> None:
+        """The lower SAC's owed updates, then ``high_gradient_steps`` updates of the higher SAC."""
+        self._train_low_level()
+        self.higher._current_progress_remaining = self._current_progress_remaining
+        self.higher.train(gradient_steps=self.high_gradient_steps, batch_size=self.high_batch_size)
+        self._n_updates += self.high_gradient_steps
+
+    def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
+        result = super()._setup_learn(*args, **kwargs)
+        self.higher.set_logger(LevelLogger(self.logger, "high"))  # type: ignore[arg-type]
+        return result
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "higher"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, variables = super()._get_torch_save_params()
+        high_state_dicts = ["higher.policy", "higher.actor.optimizer", "higher.critic.optimizer"]
+        if self.higher.ent_coef_optimizer is not None:
+            return [*high_state_dicts, "higher.ent_coef_optimizer", *state_dicts], ["higher.log_ent_coef", *variables]
+        return [*high_state_dicts, *state_dicts], ["higher.ent_coef_tensor", *variables]
+
+    def _save_high_level_data(self, path: str) -> None:
+        self.higher.save_replay_buffer(sibling_path(path, ".higher.pkl"))
+
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
+        self.higher.load_replay_buffer(sibling_path(path, ".higher.pkl"), truncate_last_traj=truncate_last_traj)

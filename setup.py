@@ -1,0 +1,45 @@
+import os
+
+from setuptools import find_packages, setup
+
+with open(os.path.join("sb3_dipper", "version.txt")) as file_handler:
+    __version__ = file_handler.read().strip()
+
+with open("README.md", encoding="utf-8") as file_handler:
+    long_description = file_handler.read()
+
+setup(
+    name="sb3-dipper",
+    version=__version__,
+    description="DIPPER (direct preference optimization for hierarchical RL) and its baselines for Stable-Baselines3",
+    long_description=long_description,
+    long_description_content_type="text/markdown",
+    packages=find_packages(include=["sb3_dipper", "sb3_dipper.*"]),
+    package_data={"sb3_dipper": ["py.typed", "version.txt"]},
+    python_requires=">=3.10",
+    install_requires=[
+        # 2.13.0 is the CPU wheel these machines carry; the Makefile installs it first so this range adds nothing.
+        "torch>=2.8,<3",
+        "stable-baselines3>=2.9.2,<3",
+        "sb3-contrib>=2.9.2,<3",
+        "gymnasium>=1.2,<2",
+        "gymnasium-robotics>=1.4.2,<1.5",
+        # mujoco 3.12 and later break gymnasium-robotics 1.4.2 (Fetch and Kitchen joint-type assertion).
+        "mujoco>=3.3,<3.12",
+        "numpy>=1.24",
+        "tqdm",
+        "rich",
+    ],
+    extras_require={
+        # rl-zoo3's enjoy imports requests without declaring it.
+        "zoo": ["rl-zoo3>=2.9.2,<3", "requests", "pyyaml"],
+        "plots": ["matplotlib>=3.7", "pandas>=2.2", "rliable>=1.2"],
+        "tests": ["pytest>=8", "pytest-timeout", "ruff", "mypy", "types-PyYAML"],
+    },
+    entry_points={"console_scripts": []},
+    license="MIT",
+    classifiers=[
+        "Programming Language :: Python :: 3",
+        "License :: OSI Approved :: MIT License",
+    ],
+)

@@ -1,0 +1,51 @@
+import os
+
+# Headless MuJoCo rendering; set before mujoco is imported anywhere.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+import sb3_dipper
+from sb3_dipper import DIPPER, HIER
+
+# One thread: tests run tiny networks, where more threads only add overhead and timing noise.
+th.set_num_threads(1)
+
+HIERARCHICAL_ALGORITHMS = [DIPPER, HIER]
+
+# Tiny budgets: 20-step episodes of four 5-step options, small networks and buffers.
+SHORT_EPISODES = {"max_episode_steps": 20}
+TINY_KWARGS = {
+    DIPPER: dict(n_preference_pairs=200, pairs_per_batch=8, trajectory_buffer_size=50, policy_kwargs=dict(net_arch=[16])),
+    HIER: dict(high_batch_size=16, high_buffer_size=1000, policy_kwargs=dict(net_arch=[16])),
+}
+
+
+def tiny_model(model_class, env, policy="MultiInputPolicy", **overrides):
+    kwargs = dict(
+        option_steps=5,
+        learning_starts=40,
+        buffer_size=2000,
+        batch_size=16,
+        low_policy_kwargs=dict(net_arch=[16]),
+        seed=0,
+        **TINY_KWARGS[model_class],
+    )
+    kwargs.update(overrides)
+    return model_class(policy, env, **kwargs)
+
+
+def short_maze(n_envs: int = 1, seed: int = 0, **kwargs):
+    return make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=n_envs, seed=seed, env_kwargs=SHORT_EPISODES, **kwargs)
+
+
+@pytest.fixture
+def maze_env():
+    env = short_maze()
+    yield env
+    env.close()
+
+
+__all__ = ["HIERARCHICAL_ALGORITHMS", "sb3_dipper", "short_maze", "tiny_model"]

@@ -1,0 +1,105 @@
+"""Bad input gets an error that names the problem and the fix."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium import spaces
+
+from sb3_dipper import DIPPER, HIER, SubgoalSpace
+from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
+
+
+class NestedGoalEnv(gym.Env):
+    """Goals as nested Dicts, as FrankaKitchen-v1 has them."""
+
+    observation_space = spaces.Dict(
+        {
+            "observation": spaces.Box(-1, 1, (3,)),
+            "achieved_goal": spaces.Dict({"microwave": spaces.Box(-1, 1, (1,))}),
+            "desired_goal": spaces.Dict({"microwave": spaces.Box(-1, 1, (1,))}),
+        }
+    )
+    action_space = spaces.Box(-1, 1, (2,))
+
+
+class DenseGoalEnv(gym.Env):
+    """A goal env with a dense reward, which primitive-in-the-loop labels cannot use."""
+
+    observation_space = spaces.Dict({key: spaces.Box(-1, 1, (2,)) for key in ("observation", "achieved_goal", "desired_goal")})
+    action_space = spaces.Box(-1, 1, (2,))
+    spec = gym.envs.registration.EnvSpec("DenseGoal-v0", max_episode_steps=10)
+    subgoal_space = SubgoalSpace(np.full(2, -1.0), np.full(2, 1.0), 0.1)
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        return -np.linalg.norm(achieved_goal - desired_goal, axis=-1)
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_a_non_goal_env_is_refused(model_class):
+    with pytest.raises(ValueError, match="needs a goal-conditioned env"):
+        model_class("MlpPolicy", "Pendulum-v1")
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_a_nested_dict_goal_env_is_refused(model_class):
+    with pytest.raises(ValueError, match=r"nested Dict.*FrankaKitchenMicrowaveBurner"):
+        model_class("MlpPolicy", NestedGoalEnv())
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_an_unknown_keyword_is_refused(model_class, maze_env):
+    with pytest.raises(TypeError, match="unexpected keyword argument 'option_step'"):
+        model_class("MlpPolicy", maze_env, option_step=10)
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_an_unknown_policy_name_is_refused(model_class, maze_env):
+    with pytest.raises(ValueError, match="has no policy 'CnnPolicy'"):
+        model_class("CnnPolicy", maze_env)
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_a_mismatched_env_at_load_is_refused(model_class, tmp_path, maze_env):
+    tiny_model(model_class, maze_env).save(tmp_path / "model")
+    other = gym.make("FetchReach-v4")
+    with pytest.raises(ValueError, match="spaces do not match"):
+        model_class.load(tmp_path / "model", env=other)
+
+
+def test_bad_dipper_switches_are_refused(maze_env):
+    with pytest.raises(ValueError, match="Unknown value_reg 'papper'"):
+        DIPPER("MlpPolicy", maze_env, value_reg="papper")
+    with pytest.raises(ValueError, match="hindsight_goal_prob must be in"):
+        DIPPER("MlpPolicy", maze_env, hindsight_goal_prob=1.5)
+    with pytest.raises(ValueError, match="option_steps must be at least 1"):
+        HIER("MlpPolicy", maze_env, option_steps=0)
+
+
+def test_a_dense_reward_is_refused_for_preference_labels():
+    with pytest.raises(ValueError, match="sparse goal reward"):
+        DIPPER("MlpPolicy", DenseGoalEnv())
+
+
+def test_an_env_without_time_limit_needs_max_episode_steps():
+    env = DenseGoalEnv()
+    env.spec = gym.envs.registration.EnvSpec("DenseGoal-v0", max_episode_steps=None)
+    with pytest.raises(ValueError, match="no time limit"):
+        HIER("MlpPolicy", env)
+
+
+def test_an_env_without_a_known_subgoal_space():
+    env = gym.make("FetchReach-v4")
+    with pytest.raises(ValueError, match="No subgoal space is known for env 'FetchReach-v4'"):
+        HIER("MlpPolicy", env)
+
+
+def test_learn_without_env_explains_itself(tmp_path, maze_env):
+    tiny_model(HIER, maze_env).save(tmp_path / "model")
+    loaded = HIER.load(tmp_path / "model")
+    with pytest.raises(ValueError, match=r"learn\(\) needs an env.*HIER.load\(path, env=...\)"):
+        loaded.learn(10)
+
+
+def test_short_maze_fixture_is_short():
+    env = short_maze()
+    assert env.get_attr("spec")[0].max_episode_steps == 20

@@ -1,0 +1,171 @@
+"""Preference pairs: primitive-in-the-loop scores and labels, ties, hindsight goal sharing, the stored dataset."""
+
+import numpy as np
+import pytest
+from gymnasium import spaces
+
+from sb3_dipper.common.preferences import (
+    PreferenceDataset,
+    PrimitiveInTheLoopLabeler,
+    TrajectoryPairs,
+    labels_from_scores,
+    relabel_hindsight_actions,
+    sample_trajectory_pairs,
+    truncate_at_first_arrival,
+)
+from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.trajectories import TrajectoryBuffer
+
+SPACE = SubgoalSpace(low=np.full(2, -5.0), high=np.full(2, 5.0), threshold=0.5)
+OBS_SPACE = spaces.Dict(
+    {key: spaces.Box(-10, 10, (2,), np.float32) for key in ("observation", "achieved_goal", "desired_goal")}
+)
+GOAL = np.array([3.0, 0.0], dtype=np.float32)
+
+
+def goal_reached(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(achieved - desired, axis=-1) <= 0.5
+
+
+def add_trajectory(buffer: TrajectoryBuffer, path: list[tuple[float, float]], goal: np.ndarray = GOAL) -> None:
+    position = np.zeros(2, dtype=np.float32)
+    for step, point in enumerate(path):
+        obs = {"observation": position[None], "achieved_goal": position[None], "desired_goal": goal[None]}
+        done = np.array([step == len(path) - 1])
+        buffer.add(obs, np.zeros((1, 2), np.float32), np.array([point], dtype=np.float32), done)
+        position = np.array(point, dtype=np.float32)
+
+
+@pytest.fixture
+def buffer() -> TrajectoryBuffer:
+    buffer = TrajectoryBuffer(capacity=10, max_length=3, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(buffer, [(1, 0), (2, 0), (3, 0)])  # 0: reaches GOAL at its last option
+    add_trajectory(buffer, [(0, 1), (0, 2), (0, 3)])  # 1: never reaches GOAL
+    add_trajectory(buffer, [(3, 0.2), (2, 2), (0, 0)])  # 2: reaches GOAL first, then leaves
+    add_trajectory(buffer, [(1, 1), (3, 0.1)])  # 3: two options only, reaches GOAL at the second
+    return buffer
+
+
+def pairs_of(buffer: TrajectoryBuffer, first: list[int], second: list[int]) -> TrajectoryPairs:
+    indices = np.array([first, second])
+    next_achieved = buffer.next_achieved_goals[indices]
+    return TrajectoryPairs(
+        observations={key: value[indices].copy() for key, value in buffer.observations.items()},
+        actions=buffer.actions[indices],
+        reached_actions=relabel_hindsight_actions(next_achieved, SPACE),
+        next_achieved_goals=next_achieved,
+        mask=np.stack([buffer.mask(indices[0]), buffer.mask(indices[1])]),
+        labels=np.full(len(first), np.nan, dtype=np.float32),
+    )
+
+
+def test_trajectory_buffer_stores_whole_episodes_with_a_mask(buffer):
+    assert len(buffer) == 4
+    assert buffer.lengths[:4].tolist() == [3, 3, 3, 2]
+    assert buffer.mask(np.array([3])).tolist() == [[True, True, False]]
+    np.testing.assert_allclose(buffer.observations["achieved_goal"][0, 1], [1, 0])
+
+
+def test_primitive_in_the_loop_scores_count_options_that_end_at_the_goal(buffer):
+    labeler = PrimitiveInTheLoopLabeler(goal_reached)
+    pairs = pairs_of(buffer, [0, 0, 1, 2], [1, 2, 1, 3])
+    np.testing.assert_array_equal(labeler.scores(pairs), [[1, 1, 0, 1], [0, 1, 0, 1]])
+    np.testing.assert_array_equal(labeler.label(pairs), [1.0, 0.5, 0.5, 0.5])
+
+
+def test_labels_from_scores_prefer_higher_and_tie_at_equal():
+    np.testing.assert_array_equal(labels_from_scores(np.array([[2, 0, 1], [1, 3, 1]])), [1.0, 0.0, 0.5])
+
+
+def test_value_score_breaks_ties(buffer):
+    labeler = PrimitiveInTheLoopLabeler(goal_reached, value_score=lambda pairs: np.array([[0.0], [1e-3]]))
+    assert labeler.label(pairs_of(buffer, [0], [2])).tolist() == [0.0]
+
+
+def test_truncation_prefers_the_earliest_arrival(buffer):
+    labeler = PrimitiveInTheLoopLabeler(goal_reached)
+    pairs = truncate_at_first_arrival(pairs_of(buffer, [0, 3, 1], [2, 0, 1]), goal_reached)
+    # Trajectory 2 arrives after one option, 0 after three; 3 arrives after two (before 0); 1 and 1 never arrive.
+    np.testing.assert_array_equal(pairs.mask[:, 0], [[True, False, False], [True, False, False]])
+    np.testing.assert_array_equal(labeler.label(pairs), [0.0, 1.0, 0.5])
+    np.testing.assert_array_equal(pairs.mask[:, 2], [[True, True, True], [True, True, True]])
+
+
+def test_hindsight_goal_sharing_gives_both_trajectories_a_goal_one_of_them_achieved(buffer):
+    rng = np.random.default_rng(0)
+    pairs = sample_trajectory_pairs(buffer, 50, hindsight_goal_prob=1.0, subgoal_space=SPACE, rng=rng)
+    goals = pairs.observations["desired_goal"]
+    np.testing.assert_array_equal(goals[0], goals[1])
+    for pair in range(50):
+        achieved = np.concatenate([pairs.next_achieved_goals[side, pair][pairs.mask[side, pair]] for side in (0, 1)])
+        assert np.any(np.all(np.isclose(achieved, goals[0, pair, 0]), axis=1))
+        assert np.all(goals[:, pair] == goals[0, pair, 0])
+
+
+def test_without_hindsight_each_trajectory_keeps_its_own_goal():
+    buffer = TrajectoryBuffer(capacity=4, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal=np.array([1.0, 1.0], np.float32))
+    add_trajectory(buffer, [(0, 1), (0, 2)], goal=np.array([-1.0, -1.0], np.float32))
+    pairs = sample_trajectory_pairs(buffer, 20, hindsight_goal_prob=0.0, subgoal_space=SPACE, rng=np.random.default_rng(1))
+    stored_goals = buffer.observations["desired_goal"][:2, 0]
+    for side in (0, 1):
+        for pair in range(20):
+            assert any(np.allclose(pairs.observations["desired_goal"][side, pair, 0], goal) for goal in stored_goals)
+
+
+def test_hindsight_actions_are_the_reached_subgoals_in_unit_coordinates(buffer):
+    pairs = pairs_of(buffer, [0], [1])
+    np.testing.assert_allclose(pairs.reached_actions[0, 0], [[0.2, 0.0], [0.4, 0.0], [0.6, 0.0]])
+
+
+def test_dataset_respects_the_label_budget_and_round_trips_through_npz(buffer, tmp_path):
+    labeler = PrimitiveInTheLoopLabeler(goal_reached)
+    dataset = PreferenceDataset(capacity=5)
+    for _ in range(3):
+        pairs = pairs_of(buffer, [0, 1], [1, 2])
+        pairs.labels = labeler.label(pairs)
+        dataset.add(pairs)
+    assert len(dataset) == 5 and dataset.remaining == 0
+    dataset.save(tmp_path / "prefs.npz")
+    loaded = PreferenceDataset.load(tmp_path / "prefs.npz")
+    assert loaded.capacity == 5 and len(loaded) == 5
+    original, restored = dataset.all_pairs(), loaded.all_pairs()
+    np.testing.assert_array_equal(original.labels, restored.labels)
+    np.testing.assert_array_equal(original.mask, restored.mask)
+    np.testing.assert_allclose(original.observations["desired_goal"], restored.observations["desired_goal"])
+
+
+def test_unlabelled_pairs_are_refused(buffer):
+    with pytest.raises(ValueError, match="labelled"):
+        PreferenceDataset(capacity=2).add(pairs_of(buffer, [0], [1]))
+
+
+def _valid_arrays(buffer: TrajectoryBuffer) -> dict[str, np.ndarray]:
+    pairs = pairs_of(buffer, [0], [1])
+    pairs.labels = np.array([1.0], np.float32)
+    dataset = PreferenceDataset(capacity=1)
+    dataset.add(pairs)
+    return dataset.to_arrays()
+
+
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [
+        (lambda arrays: arrays.pop("labels"), "missing"),
+        (lambda arrays: arrays.update(labels=np.array([0.7], np.float32)), "labels must be"),
+        (lambda arrays: arrays.update(mask=np.ones((2, 3), bool)), "mask must have shape"),
+        (lambda arrays: arrays.update(actions=np.zeros((2, 1, 5, 2), np.float32)), "actions must start with shape"),
+    ],
+)
+def test_malformed_preference_files_give_a_clear_error(buffer, tmp_path, corrupt, message):
+    arrays = _valid_arrays(buffer)
+    corrupt(arrays)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match=f"Malformed preference file.*{message}"):
+        PreferenceDataset.load(tmp_path / "bad.npz")
+
+
+def test_pickled_preference_files_are_refused(tmp_path):
+    np.savez(tmp_path / "pickled.npz", labels=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="Malformed preference file"):
+        PreferenceDataset.load(tmp_path / "pickled.npz")

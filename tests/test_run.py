@@ -1,0 +1,175 @@
+"""Every hierarchical algorithm runs, acts, logs and works with SB3's callbacks, evaluation and VecNormalize."""
+
+import os
+
+import numpy as np
+import pytest
+from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback, EvalCallback
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
+
+from sb3_dipper import DIPPER, HIER
+from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
+def test_learn_then_predict_a_primitive_action(model_class, policy, maze_env):
+    model = tiny_model(model_class, maze_env, policy=policy)
+    model.learn(120)
+    assert model.num_timesteps >= 120
+    obs = maze_env.reset()
+    action, state = model.predict(obs, deterministic=True)
+    assert action.shape == (1, 2) and np.all(np.abs(action) <= 1.0)
+    subgoals, steps_left = state
+    assert subgoals.shape == (1, 2) and steps_left.tolist() == [4]
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_two_envs_in_subprocesses(model_class):
+    env = short_maze(n_envs=2, vec_env_cls=SubprocVecEnv)
+    try:
+        model = tiny_model(model_class, env)
+        model.learn(160)
+        assert model.num_timesteps == 160
+        action, _ = model.predict(env.reset(), deterministic=False)
+        assert action.shape == (2, 2)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_predict_on_an_unbatched_observation_and_state_handover(model_class, maze_env):
+    model = tiny_model(model_class, maze_env)
+    env = maze_env.envs[0]
+    obs, _ = env.reset(seed=3)
+    action, state = model.predict(obs, deterministic=True)
+    assert action.shape == (2,)
+    subgoal = state[0].copy()
+    for steps_left in (3, 2, 1, 0):
+        obs, *_ = env.step(action)
+        action, state = model.predict(obs, state=state, deterministic=True)
+        np.testing.assert_array_equal(state[0], subgoal)
+        assert state[1].tolist() == [steps_left]
+    obs, *_ = env.step(action)
+    _, state = model.predict(obs, state=state, deterministic=True)
+    assert state[1].tolist() == [4]
+    _, restarted = model.predict(obs, state=state, episode_start=np.array([True]), deterministic=True)
+    assert restarted[1].tolist() == [4]
+
+
+def test_every_primitive_transition_reaches_the_lower_buffer_once():
+    env = short_maze(n_envs=2)
+    model = tiny_model(DIPPER, env, learning_starts=10_000)
+    model.learn(100)
+    buffer = model.lower.replay_buffer
+    assert model.num_timesteps == 100 and buffer.pos == 50
+    # Stored transitions chain within each lower segment: next observation of step i is the observation of step i+1.
+    for env_idx in range(2):
+        observations = buffer.observations["observation"][:50, env_idx]
+        next_observations = buffer.next_observations["observation"][:50, env_idx]
+        segment_ends = buffer.dones[:50, env_idx].astype(bool)
+        np.testing.assert_allclose(next_observations[:-1][~segment_ends[:-1]], observations[1:][~segment_ends[:-1]])
+        assert segment_ends.sum() == 10  # 50 steps of 5-step segments
+
+
+class CountSteps(BaseCallback):
+    def _on_step(self) -> bool:
+        assert "dones" in self.locals and "infos" in self.locals
+        return True
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_callbacks_run_once_per_primitive_step(model_class, tmp_path):
+    env = short_maze(n_envs=2)
+    counter = CountSteps()
+    eval_callback = EvalCallback(
+        short_maze(seed=5), n_eval_episodes=2, eval_freq=40, log_path=str(tmp_path), best_model_save_path=str(tmp_path)
+    )
+    checkpoint = CheckpointCallback(save_freq=50, save_path=str(tmp_path), save_replay_buffer=True)
+    model = tiny_model(model_class, env)
+    model.learn(200, callback=[counter, eval_callback, checkpoint], progress_bar=True)
+    assert counter.n_calls == 100
+    evaluations = np.load(tmp_path / "evaluations.npz")
+    assert evaluations["timesteps"].tolist() == [80, 160] and evaluations["successes"].shape == (2, 2)
+    assert (tmp_path / "best_model.zip").exists()
+    assert (tmp_path / "rl_model_100_steps.zip").exists() and (tmp_path / "rl_model_replay_buffer_100_steps.pkl").exists()
+
+
+class StopAfter(BaseCallback):
+    def __init__(self, calls: int):
+        super().__init__()
+        self.calls = calls
+
+    def _on_step(self) -> bool:
+        return self.n_calls < self.calls
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_a_callback_can_stop_training_mid_option(model_class, maze_env):
+    model = tiny_model(model_class, maze_env)
+    model.learn(1000, callback=StopAfter(13))
+    assert model.num_timesteps == 13
+    model.learn(20)  # the interrupted option leaves nothing open that breaks a new run
+    assert model.num_timesteps == 20
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_evaluate_policy(model_class, maze_env):
+    model = tiny_model(model_class, maze_env)
+    mean_reward, _ = evaluate_policy(model, short_maze(seed=9), n_eval_episodes=3, deterministic=True)
+    assert -20.0 <= mean_reward <= 0.0
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_vec_normalize(model_class):
+    env = VecNormalize(short_maze(), norm_obs=True, norm_reward=False)
+    model = tiny_model(model_class, env)
+    model.learn(120)
+    assert model.low_normalizer is not None and "achieved_goal" in model.low_normalizer.statistics
+    np.testing.assert_allclose(
+        model.low_normalizer.statistics["achieved_goal"][0], env.obs_rms["achieved_goal"].mean, atol=1e-6
+    )
+    env.training = False
+    mean_reward, _ = evaluate_policy(model, env, n_eval_episodes=2)
+    assert np.isfinite(mean_reward)
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_log_keys_of_both_levels(model_class, tmp_path):
+    env = short_maze()
+    model = tiny_model(model_class, env)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    header = open(os.path.join(tmp_path, "progress.csv")).readline().strip().split(",")
+    expected = {"rollout/success_rate", "rollout/subgoal_distance", "rollout/low_value", "time/fps", "time/total_timesteps"}
+    expected |= {"train/low_actor_loss", "train/low_critic_loss", "train/low_ent_coef"}
+    if model_class is DIPPER:
+        expected |= {"train/high_dpo_loss", "train/high_preference_pairs"}
+    else:
+        expected |= {"train/high_actor_loss", "train/high_critic_loss"}
+    assert expected <= set(header)
+    assert "train/actor_loss" not in header
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(value_reg="score"),
+        dict(value_reg="reparam"),
+        dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True, policy_kwargs=dict(net_arch=[16], acting_tau=0.05)),
+        dict(value_reg_coef=0.0),
+    ],
+)
+def test_dipper_switches_run(kwargs, maze_env, tmp_path):
+    model = tiny_model(DIPPER, maze_env, **kwargs)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    assert len(model.preferences) > 0
+
+
+def test_hier_and_dipper_share_the_option_layer(maze_env):
+    for model_class in (DIPPER, HIER):
+        model = tiny_model(model_class, maze_env)
+        assert model.option_env is not None and model.option_env.option_steps == 5
