@@ -32,6 +32,16 @@ def test_save_load_without_env_predicts_the_same_actions(model_class, tmp_path, 
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
 
 
+def test_the_planning_graph_is_saved_with_the_model(tmp_path, maze_env):
+    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
+    model.learn(400)
+    assert len(model.subgoal_graph) > 0
+    model.save(tmp_path / "model")
+    loaded = DIPPER.load(tmp_path / "model")
+    np.testing.assert_array_equal(loaded.subgoal_graph.edges, model.subgoal_graph.edges)
+    np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
+
+
 @pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
 def test_loaded_model_keeps_training(model_class, tmp_path, maze_env):
     model = tiny_model(model_class, maze_env)

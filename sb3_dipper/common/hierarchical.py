@@ -84,7 +84,7 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         policy: str | type[BasePolicy],
         env: GymEnv | str | None,
         learning_rate: float | Schedule = 3e-4,
-        option_steps: int = 30,
+        option_steps: int = 15,
         subgoal_space: SubgoalSpace | None = None,
         buffer_size: int = 1_000_000,
         learning_starts: int = 3000,

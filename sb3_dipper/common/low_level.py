@@ -100,22 +100,26 @@ class SubgoalNormalizer:
     def __init__(self, subgoal_space: SubgoalSpace) -> None:
         self.subgoal_space = subgoal_space
         self.statistics: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.goal_statistics: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.clip = np.inf
         self.epsilon = 1e-8
 
     def refresh(self, vec_normalize: VecNormalize) -> None:
         """Copy the current statistics of the base env's ``VecNormalize``."""
-        self.statistics = {}
+        self.statistics, self.goal_statistics = {}, {}
         if not vec_normalize.norm_obs:
             return
         self.clip, self.epsilon = vec_normalize.clip_obs, vec_normalize.epsilon
-        for key in ("observation", "achieved_goal"):
+        for key in ("observation", "achieved_goal", "desired_goal"):
             if key in (vec_normalize.norm_obs_keys or []):
                 rms = vec_normalize.obs_rms[key]  # type: ignore[index]
-                project = key == "achieved_goal"
-                mean = self.subgoal_space.project(rms.mean) if project else rms.mean
-                var = self.subgoal_space.project(rms.var) if project else rms.var
-                self.statistics[key] = (np.array(mean, dtype=np.float64), np.array(var, dtype=np.float64))
+                mean, var = np.array(rms.mean, dtype=np.float64), np.array(rms.var, dtype=np.float64)
+                if key != "observation":
+                    self.goal_statistics[key] = (mean, var)
+                if key == "achieved_goal":
+                    mean, var = self.subgoal_space.project(mean), self.subgoal_space.project(var)
+                if key != "desired_goal":
+                    self.statistics[key] = (mean, var)
 
     def _normalize(self, value: np.ndarray, base_key: str) -> np.ndarray:
         if base_key not in self.statistics:
@@ -144,6 +148,20 @@ class SubgoalNormalizer:
 
     def normalize_reward(self, reward: np.ndarray) -> np.ndarray:
         return reward
+
+    def unnormalize_goal(self, value: np.ndarray, key: str) -> np.ndarray:
+        """Original values of a normalised base ``achieved_goal`` or ``desired_goal``."""
+        if key not in self.goal_statistics:
+            return value
+        mean, var = self.goal_statistics[key]
+        return value * np.sqrt(var + self.epsilon) + mean
+
+    def normalize_goal(self, value: np.ndarray, key: str) -> np.ndarray:
+        """Normalise an original base ``achieved_goal`` or ``desired_goal``."""
+        if key not in self.goal_statistics:
+            return value
+        mean, var = self.goal_statistics[key]
+        return np.clip((value - mean) / np.sqrt(var + self.epsilon), -self.clip, self.clip).astype(np.float32)
 
 
 class LevelLogger:

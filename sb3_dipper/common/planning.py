@@ -6,19 +6,23 @@ primitive-in-the-loop labels are), so the graph never asks the current lower lev
 stitch pieces of different trajectories together.
 
 :meth:`SubgoalGraph.waypoints` walks ``lookahead`` edges along a shortest path (in options) from the voxel of the
-current achieved goal toward the voxel of the goal. A higher-level policy conditioned on that waypoint instead of the
-far goal only has to solve a short-horizon problem, which preference learning does well; the graph supplies the long
-horizon. Where no path is known, the goal itself is returned and the policy explores as usual.
+current achieved goal toward the goal: toward the goal's own voxel, or, if no option ever ended there, toward the
+visited voxel nearest to it (within ``2 * resolution``), from where the lower level covers the last stretch. Where no
+path is known, the goal itself is returned and the policy acts as usual.
 """
 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+
+DictObs = dict[str, np.ndarray]
+EdgeCheck = Callable[[DictObs, np.ndarray], np.ndarray]
 
 
 class SubgoalGraph:
@@ -45,14 +49,23 @@ class SubgoalGraph:
     def __len__(self) -> int:
         return int(self.node_ids.size)
 
+    def __getstate__(self) -> dict:
+        # The distance cache is recomputed on demand; saved models do not need to carry it.
+        return {**self.__dict__, "_distances": {}}
+
     def voxel_ids(self, points: np.ndarray) -> np.ndarray:
         """Flat voxel index of each point (points outside the space fall in the border voxels)."""
         cells = np.floor((points - self.subgoal_space.low) / self.resolution).astype(np.int64)
         cells = np.clip(cells, 0, np.array(self.grid_shape) - 1)
         return np.ravel_multi_index(tuple(np.moveaxis(cells, -1, 0)), self.grid_shape)
 
-    def rebuild(self, buffer: TrajectoryBuffer) -> None:
-        """Rebuild nodes and edges from every stored trajectory."""
+    def rebuild(self, buffer: TrajectoryBuffer, edge_check: EdgeCheck | None = None) -> None:
+        """Rebuild nodes and edges from every stored trajectory.
+
+        :param edge_check: keeps an edge only if it accepts at least one option that took it:
+            ``edge_check(start_observations, target_points) -> keep`` (for example: the lower level's value of
+            reaching the target voxel from the option's start state is high enough)
+        """
         n_trajectories = len(buffer)
         if n_trajectories == 0:
             return
@@ -63,11 +76,17 @@ class SubgoalGraph:
         valid = np.concatenate([np.ones((n_trajectories, 1), dtype=bool), buffer.mask(np.arange(n_trajectories))], axis=1)
         ids = self.voxel_ids(points)
         edge_valid = valid[:, 1:] & (ids[:, 1:] != ids[:, :-1])
-        raw_edges = np.unique(np.stack([ids[:, :-1][edge_valid], ids[:, 1:][edge_valid]], axis=1), axis=0)
-        self.set_graph(ids[valid], points[valid], raw_edges)
+        sources, targets = ids[:, :-1][edge_valid], ids[:, 1:][edge_valid]
+        self.set_nodes(ids[valid], points[valid])
+        if edge_check is not None and sources.size > 0:
+            trajectory, step = np.nonzero(edge_valid)
+            start_observations = {key: value[trajectory, step] for key, value in buffer.observations.items()}
+            keep = edge_check(start_observations, self.node_points[[self._index[int(voxel)] for voxel in targets]])
+            sources, targets = sources[keep], targets[keep]
+        self.set_edges(np.unique(np.stack([sources, targets], axis=1), axis=0))
 
-    def set_graph(self, point_ids: np.ndarray, points: np.ndarray, voxel_edges: np.ndarray) -> None:
-        """Set the graph from points (with their voxel ids) and voxel-id edges; node points are the voxel means."""
+    def set_nodes(self, point_ids: np.ndarray, points: np.ndarray) -> None:
+        """Set the nodes from points and their voxel ids (a node's point is the mean of its points); no edges."""
         self.node_ids, inverse = np.unique(point_ids, return_inverse=True)
         counts = np.bincount(inverse, minlength=self.node_ids.size).astype(np.float64)
         sums = np.stack(
@@ -75,6 +94,10 @@ class SubgoalGraph:
         )
         self.node_points = (sums / counts[:, None]).astype(np.float32)
         self._index = {int(voxel): node for node, voxel in enumerate(self.node_ids)}
+        self.set_edges(np.zeros((0, 2), dtype=np.int64))
+
+    def set_edges(self, voxel_edges: np.ndarray) -> None:
+        """Set the directed edges, given as pairs of voxel ids of existing nodes."""
         self.edges = np.array([[self._index[int(a)], self._index[int(b)]] for a, b in voxel_edges], dtype=np.int64).reshape(
             -1, 2
         )
@@ -100,14 +123,23 @@ class SubgoalGraph:
             self._distances[node] = distances
         return self._distances[node]
 
+    def goal_node(self, goal: np.ndarray) -> int | None:
+        """The node of the goal's voxel, else the node nearest to the goal within two voxels, else ``None``."""
+        node = self._index.get(int(self.voxel_ids(goal[None])[0]))
+        if node is not None:
+            return node
+        distances = np.linalg.norm(self.node_points - goal, axis=-1)
+        nearest = int(np.argmin(distances))
+        return nearest if distances[nearest] <= 2 * self.resolution else None
+
     def waypoints(self, achieved: np.ndarray, goals: np.ndarray, lookahead: int) -> np.ndarray:
         """For each row, the point ``lookahead`` options along a shortest known path to the goal (else the goal)."""
         result = np.array(goals, dtype=np.float32, copy=True)
         if len(self) == 0:
             return result
-        start_ids, goal_ids = self.voxel_ids(achieved), self.voxel_ids(goals)
-        for row, (start_voxel, goal_voxel) in enumerate(zip(start_ids, goal_ids, strict=True)):
-            start, goal = self._index.get(int(start_voxel)), self._index.get(int(goal_voxel))
+        start_ids = self.voxel_ids(achieved)
+        for row, start_voxel in enumerate(start_ids):
+            start, goal = self._index.get(int(start_voxel)), self.goal_node(result[row])
             if start is None or goal is None or start == goal:
                 continue
             distances = self.distances_to(goal)
@@ -118,6 +150,7 @@ class SubgoalGraph:
                 current = min(self._successors[current], key=lambda node: distances[node])
                 if current == goal:
                     break
-            if current != goal:
+            goal_voxel_visited = int(self.node_ids[goal]) == int(self.voxel_ids(result[row : row + 1])[0])
+            if current != goal or not goal_voxel_visited:
                 result[row] = self.node_points[current]
         return result

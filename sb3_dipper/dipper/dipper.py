@@ -20,6 +20,7 @@ from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
 from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
+from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
     PreferenceSource,
@@ -36,8 +37,11 @@ from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
+PLANNING_MODES = ("off", "subgoal", "waypoint")
 # Label at most this many new pairs per training round, so labelling never stalls a round.
 MAX_NEW_PAIRS_PER_ROUND = 256
+# Rebuild the planning graph after this many new trajectories (a rebuild takes milliseconds).
+GRAPH_REBUILD_TRAJECTORIES = 4
 
 
 class DIPPER(HierarchicalAlgorithm):
@@ -67,6 +71,13 @@ class DIPPER(HierarchicalAlgorithm):
     :param nll_coef: weight of the preferred trajectory's negative log-likelihood added to the loss (RPO-style; 0: off)
     :param hindsight_actions: train on the subgoal each option actually reached instead of the one proposed
     :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
+    :param planning: planning over achieved states (:class:`~sb3_dipper.common.planning.SubgoalGraph`): ``"off"`` (the
+        paper), ``"subgoal"`` (where the graph knows a path to the goal, propose the waypoint on it; elsewhere the
+        policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal)
+    :param planning_lookahead: how many options along the shortest known path the waypoint lies
+    :param planning_resolution: voxel size of the planning graph (default: the subgoal threshold)
+    :param planning_value_threshold: keep a graph edge only if the lower level's value ``min_i Q_i(s, g, mu(s, g))`` of
+        reaching its target voxel from the start of some option that took it is at least this (``None``: keep all)
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
     :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward)
     :param buffer_size: lower-level replay buffer size
@@ -99,11 +110,11 @@ class DIPPER(HierarchicalAlgorithm):
         policy: str | type[DIPPERPolicy],
         env: GymEnv | str | None,
         learning_rate: float | Schedule = 1e-3,
-        option_steps: int = 30,
+        option_steps: int = 15,
         subgoal_space: SubgoalSpace | None = None,
         beta: float = 0.1,
         value_reg_coef: float = 0.1,
-        value_steps: int = 30,
+        value_steps: int = 15,
         value_reg: str = "paper",
         n_preference_pairs: int = 10_000,
         pairs_per_batch: int = 64,
@@ -113,6 +124,10 @@ class DIPPER(HierarchicalAlgorithm):
         nll_coef: float = 0.0,
         hindsight_actions: bool = False,
         truncate_at_goal: bool = False,
+        planning: str = "off",
+        planning_lookahead: int = 1,
+        planning_resolution: float | None = None,
+        planning_value_threshold: float | None = None,
         trajectory_buffer_size: int = 5000,
         preference_source: PreferenceSource | None = None,
         buffer_size: int = 1_000_000,
@@ -178,6 +193,14 @@ class DIPPER(HierarchicalAlgorithm):
         self.nll_coef = nll_coef
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
+        if planning not in PLANNING_MODES:
+            raise ValueError(f"Unknown planning {planning!r}: choose one of {PLANNING_MODES}")
+        self.planning = planning
+        self.planning_lookahead = planning_lookahead
+        self.planning_resolution = planning_resolution
+        self.planning_value_threshold = planning_value_threshold
+        # Saved with the model (load() restores it before _setup_model), so a loaded model plans as it did.
+        self.subgoal_graph: SubgoalGraph | None = None
         self.trajectory_buffer_size = trajectory_buffer_size
         self.preference_source = preference_source
         if _init_setup_model:
@@ -196,6 +219,9 @@ class DIPPER(HierarchicalAlgorithm):
             self.n_envs,
         )
         self.preferences = PreferenceDataset(self.n_preference_pairs)
+        if self.planning != "off" and self.subgoal_graph is None:
+            self.subgoal_graph = SubgoalGraph(self.subgoal_space, self.planning_resolution or self.subgoal_space.threshold)
+        self._trajectories_since_graph = 0
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
         self._value_snapshot_updates = self.lower._n_updates
@@ -220,8 +246,52 @@ class DIPPER(HierarchicalAlgorithm):
     # ---------------------------------------------------------------------------------------------------- acting
 
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
-        actions, _ = self.policy.predict(observation, deterministic=deterministic)  # type: ignore[arg-type]
-        return np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
+        planned = None
+        if self.subgoal_graph is not None:
+            planned = self._with_planned_goals(observation, self.subgoal_graph)
+        policy_input = planned if planned is not None and self.planning == "waypoint" else observation
+        actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
+        actions = np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
+        if planned is not None and self.planning == "subgoal":
+            has_path = np.any(planned["desired_goal"] != observation["desired_goal"], axis=-1)
+            actions[has_path] = self._planned_actions(planned)[has_path]
+        return actions
+
+    def _with_planned_goals(self, observation: DictObs, graph: SubgoalGraph) -> DictObs:
+        """Replace each goal by a waypoint on a shortest known path toward it (planning over achieved states)."""
+        assert self.subgoal_space is not None
+        space, normalizer = self.subgoal_space, self.low_normalizer
+        achieved, desired = observation["achieved_goal"], observation["desired_goal"]
+        if normalizer is not None:
+            achieved = normalizer.unnormalize_goal(achieved, "achieved_goal")
+            desired = normalizer.unnormalize_goal(desired, "desired_goal")
+        waypoints = graph.waypoints(space.project(achieved), space.project(desired), self.planning_lookahead)
+        planned = np.array(desired, dtype=np.float32)
+        planned[..., list(space.indices) if space.indices is not None else slice(None)] = waypoints
+        if normalizer is not None:
+            planned = normalizer.normalize_goal(planned, "desired_goal")
+        return {**observation, "desired_goal": planned}
+
+    def _reachable_by_lower_level(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
+        """Whether the lower level's value of reaching each target from each start state passes the threshold."""
+        assert self.subgoal_space is not None and self.planning_value_threshold is not None
+        values = []
+        with th.no_grad():
+            for chunk in range(0, targets.shape[0], 4096):
+                rows = slice(chunk, chunk + 4096)
+                batch = {key: value[rows] for key, value in start_observations.items()}
+                low_obs = self.low_level.tensor_obs(low_level_observation(batch, targets[rows], self.subgoal_space))
+                actions = self.lower.actor(low_obs, deterministic=True)
+                values.append(th.cat(self.lower.critic(low_obs, actions), dim=1).min(dim=1).values.cpu().numpy())
+        return np.concatenate(values) >= self.planning_value_threshold
+
+    def _planned_actions(self, planned: DictObs) -> np.ndarray:
+        """The higher-level actions whose subgoals are the planned waypoints."""
+        assert self.subgoal_space is not None
+        goals = planned["desired_goal"]
+        if self.low_normalizer is not None:
+            goals = self.low_normalizer.unnormalize_goal(goals, "desired_goal")
+        return self.subgoal_space.to_unit(self.subgoal_space.project(goals))
 
     def _store_option(
         self,
@@ -234,6 +304,11 @@ class DIPPER(HierarchicalAlgorithm):
     ) -> None:
         assert self.option_env is not None and self.option_env.reached_obs is not None
         self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
+        self._trajectories_since_graph += int(np.sum(dones))
+        if self.subgoal_graph is not None and self._trajectories_since_graph >= GRAPH_REBUILD_TRAJECTORIES:
+            edge_check = self._reachable_by_lower_level if self.planning_value_threshold is not None else None
+            self.subgoal_graph.rebuild(self.trajectory_buffer, edge_check)
+            self._trajectories_since_graph = 0
 
     def _end_open_episodes(self) -> None:
         super()._end_open_episodes()

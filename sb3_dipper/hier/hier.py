@@ -130,7 +130,7 @@ class HIER(HierarchicalAlgorithm):
         policy: str | type[BasePolicy],
         env: GymEnv | str | None,
         learning_rate: float | Schedule = 1e-3,
-        option_steps: int = 20,
+        option_steps: int = 15,
         subgoal_space: SubgoalSpace | None = None,
         high_buffer_size: int = 100_000,
         high_batch_size: int = 256,

@@ -1,0 +1,80 @@
+"""Read our RL-Zoo hyperparameter files (``hyperparams/<algo>.yml``) without importing rl-zoo3.
+
+The demo and the benchmarks build models from the same YAML entries the zoo trains with, so there is one source of
+configuration. Strings such as ``"dict(net_arch=[64, 64])"`` are evaluated as rl-zoo3 does, with the few names its
+files use and no builtins.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch as th
+import yaml
+from sb3_contrib import TQC
+from stable_baselines3 import SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
+
+from sb3_dipper import DIPPER, HIER
+
+HYPERPARAMS_DIR = Path(__file__).resolve().parent.parent / "hyperparams"
+
+ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"dipper": DIPPER, "dipper_paper": DIPPER, "hier": HIER, "sac": SAC, "tqc": TQC}
+
+# The zoo's own keys: they configure the env and the run, not the algorithm's constructor.
+ZOO_KEYS = ("n_timesteps", "n_envs", "normalize", "env_kwargs", "monitor_kwargs", "env_wrapper", "callback", "frame_stack")
+EVALUATED_KEYS = ("policy_kwargs", "low_policy_kwargs", "replay_buffer_kwargs", "high_replay_buffer_kwargs", "monitor_kwargs")
+NAMESPACE = {"dict": dict, "nn": th.nn, "th": th, "HerReplayBuffer": HerReplayBuffer}
+
+
+def load_entry(algo: str, env_id: str, hyperparams_dir: Path = HYPERPARAMS_DIR) -> dict[str, Any]:
+    """The entry for ``env_id`` (or ``default``) of ``<algo>.yml``, with string values evaluated as rl-zoo3 does."""
+    path = hyperparams_dir / f"{algo}.yml"
+    with open(path) as file:
+        entries = yaml.safe_load(file)
+    if env_id not in entries and "default" not in entries:
+        raise KeyError(f"{path} has no entry for {env_id!r} and no 'default' entry")
+    entry = dict(entries.get(env_id, entries.get("default")))
+    for key in EVALUATED_KEYS:
+        if isinstance(entry.get(key), str):
+            entry[key] = eval(entry[key], {"__builtins__": {}}, NAMESPACE)
+    if isinstance(entry.get("replay_buffer_class"), str):
+        entry["replay_buffer_class"] = NAMESPACE[entry["replay_buffer_class"]]
+    return entry
+
+
+def make_model(
+    algo: str, env_id: str, seed: int, overrides: dict[str, Any] | None = None, **model_kwargs: Any
+) -> tuple[BaseAlgorithm, VecEnv, int]:
+    """Build the training env and the model of one YAML entry; returns ``(model, env, n_timesteps)``."""
+    entry = {**load_entry(algo, env_id), **(overrides or {})}
+    env = make_env(env_id, entry, seed)
+    n_timesteps = int(entry["n_timesteps"])
+    kwargs = {key: value for key, value in entry.items() if key not in ZOO_KEYS}
+    model = ALGORITHMS[algo](env=env, seed=seed, **kwargs, **model_kwargs)
+    return model, env, n_timesteps
+
+
+def make_env(env_id: str, entry: dict[str, Any], seed: int, n_envs: int | None = None) -> VecEnv:
+    """The vectorised env of an entry (``n_envs``, ``env_kwargs``, ``normalize``), Monitor recording ``is_success``."""
+    env = make_vec_env(
+        env_id,
+        n_envs=n_envs or int(entry.get("n_envs", 1)),
+        seed=seed,
+        env_kwargs=entry.get("env_kwargs"),
+        monitor_kwargs=entry.get("monitor_kwargs"),
+    )
+    normalize = entry.get("normalize", False)
+    if normalize:
+        env = VecNormalize(env, **(normalize if isinstance(normalize, dict) else {}))
+    return env
+
+
+def torch_threads() -> int:
+    """One torch thread per run unless ``SB3_DIPPER_THREADS`` says otherwise (runs are small; processes parallelise)."""
+    return int(os.environ.get("SB3_DIPPER_THREADS", "1"))
