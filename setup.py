@@ -34,9 +34,11 @@ setup(
         # rl-zoo3's enjoy imports requests without declaring it.
         "zoo": ["rl-zoo3>=2.9.2,<3", "requests", "pyyaml"],
         "plots": ["matplotlib>=3.7", "pandas>=2.2", "rliable>=1.2"],
-        "tests": ["pytest>=8", "pytest-timeout", "ruff", "mypy", "types-PyYAML"],
+        # Reading Minari dataset directories as demonstrations.
+        "minari": ["minari[hdf5]>=0.5"],
+        "tests": ["pytest>=8", "pytest-timeout", "ruff", "mypy", "types-PyYAML", "minari[hdf5]>=0.5"],
     },
-    entry_points={"console_scripts": []},
+    entry_points={"console_scripts": ["sb3-dipper-demos = sb3_dipper.envs.demos:main"]},
     license="MIT",
     classifiers=[
         "Programming Language :: Python :: 3",

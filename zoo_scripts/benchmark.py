@@ -2,6 +2,7 @@
 
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
+    python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set planning=off --name ablations
 
 ``learning`` runs every (algorithm, seed) pair from its ``hyperparams/<algo>.yml`` entry in a process pool, evaluates
 the deterministic success rate every ``--eval-freq`` primitive steps (``evaluations.npz`` per run), skips runs that
@@ -41,6 +42,11 @@ LABELS = {"dipper": "DIPPER", "dipper_paper": "DIPPER (paper)", "hier": "HIER", 
 
 
 # ------------------------------------------------------------------------------------------------------------- report
+
+
+def label(run: str) -> str:
+    algo, _, variant = run.partition("-")
+    return LABELS.get(algo, algo) + (f" ({variant})" if variant else "")
 
 
 def machine() -> str:
@@ -137,18 +143,43 @@ class PeriodicSuccess(BaseCallback):
         np.savez(self.path, timesteps=np.array(self.timesteps), successes=np.array(self.successes))
 
 
+def run_name(algo: str, variant: str | None) -> str:
+    return algo if variant is None else f"{algo}-{variant}"
+
+
+def parse_overrides(assignments: list[str]) -> dict[str, Any]:
+    """``key=value`` pairs, values read as YAML (``planning=off``, ``nll_coef=0.0``, ``hindsight_actions=false``)."""
+    import yaml
+
+    overrides = {}
+    for assignment in assignments:
+        key, separator, value = assignment.partition("=")
+        if not separator:
+            raise ValueError(f"--set takes key=value, got {assignment!r}")
+        overrides[key] = yaml.safe_load(value)
+    return overrides
+
+
 def run_directory(out: Path, algo: str, env_id: str, seed: int) -> Path:
     return out / algo / env_id / f"seed_{seed}"
 
 
 def learning_run(
-    algo: str, env_id: str, seed: int, out: Path, eval_freq: int, eval_episodes: int, n_timesteps: int | None
+    algo: str,
+    env_id: str,
+    seed: int,
+    out: Path,
+    eval_freq: int,
+    eval_episodes: int,
+    n_timesteps: int | None,
+    variant: str | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> str:
     """One (algorithm, seed) run; writes evaluations.npz and, once finished, result.json."""
     th.set_num_threads(torch_threads())
-    directory = run_directory(out, algo, env_id, seed)
+    directory = run_directory(out, run_name(algo, variant), env_id, seed)
     directory.mkdir(parents=True, exist_ok=True)
-    model, _, budget = make_model(algo, env_id, seed=seed)
+    model, _, budget = make_model(algo, env_id, seed=seed, overrides=overrides)
     budget = n_timesteps or budget
     eval_env = make_env(env_id, load_entry(algo, env_id), seed=seed + 10_000, n_envs=10)
     callback = PeriodicSuccess(eval_env, eval_freq, eval_episodes, directory / "evaluations.npz")
@@ -156,7 +187,8 @@ def learning_run(
     model.learn(budget, callback=callback)
     if not callback.timesteps or callback.timesteps[-1] < model.num_timesteps:
         callback.evaluate()
-    result = dict(algo=algo, env=env_id, seed=seed, steps=model.num_timesteps, seconds=time.time() - start)
+    result = dict(algo=algo, variant=variant, overrides=overrides, env=env_id, seed=seed, steps=model.num_timesteps)
+    result["seconds"] = time.time() - start
     (directory / "result.json").write_text(json.dumps(result))
     return f"{algo} seed {seed}: {result['seconds'] / 60:.1f} min, final success {np.mean(callback.successes[-1]):.2f}"
 
@@ -185,7 +217,7 @@ def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tup
         mean_curve = matrix.mean(axis=0)
         reached = np.flatnonzero(mean_curve >= 0.5)
         to_half = f"{int(steps[reached[0]]):,}" if reached.size else "not reached"
-        rows.append(f"| {LABELS.get(algo, algo)} | {len(per_seed)} | {final.mean():.2f} +- {final.std():.2f} | {to_half} |")
+        rows.append(f"| {label(algo)} | {len(per_seed)} | {final.mean():.2f} +- {final.std():.2f} | {to_half} |")
     (out / f"{env_id}_summary.csv").write_text("\n".join(csv_lines) + "\n")
     table = "| algorithm | seeds | final success (mean +- std) | steps to 50 % (mean curve) |\n|---|---|---|---|\n"
     return table + "\n".join(rows), curves
@@ -200,7 +232,7 @@ def plot_curves(curves: dict[str, Any], env_id: str, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for algo, (steps, matrix) in curves.items():
         mean, std = matrix.mean(axis=0), matrix.std(axis=0)
-        ax.plot(steps, mean, label=LABELS.get(algo, algo))
+        ax.plot(steps, mean, label=label(algo))
         ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), alpha=0.2)
     ax.set(xlabel="primitive steps", ylabel="success rate (deterministic)", ylim=(-0.02, 1.02), title=env_id)
     ax.grid(alpha=0.3)
@@ -212,21 +244,26 @@ def plot_curves(curves: dict[str, Any], env_id: str, path: Path) -> None:
 
 def run_learning(args: argparse.Namespace) -> None:
     out = Path(args.out)
+    overrides = parse_overrides(args.set)
+    names = [run_name(algo, args.variant) for algo in args.algos]
     todo = [
         (algo, seed)
         for algo in args.algos
         for seed in args.seeds
-        if not (run_directory(out, algo, args.env, seed) / "result.json").exists()
+        if not (run_directory(out, run_name(algo, args.variant), args.env, seed) / "result.json").exists()
     ]
     print(f"{len(todo)} runs to do, {len(args.algos) * len(args.seeds) - len(todo)} already finished")
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
         futures = [
-            pool.submit(learning_run, algo, args.env, seed, out, args.eval_freq, args.eval_episodes, args.n_timesteps)
+            pool.submit(
+                learning_run,
+                *(algo, args.env, seed, out, args.eval_freq, args.eval_episodes, args.n_timesteps, args.variant, overrides),
+            )
             for algo, seed in todo
         ]
         for future in futures:
             print(future.result(), flush=True)
-    table, curves = aggregate(out, args.algos, args.env, args.seeds)
+    table, curves = aggregate(out, args.report or names, args.env, args.seeds)
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     figure = RESULTS_DIR / f"{args.name}.png"
     plot_curves(curves, args.env, figure)
@@ -257,6 +294,9 @@ def main() -> None:
     learning.add_argument("--n-timesteps", type=int, default=None, help="override every entry's n_timesteps")
     learning.add_argument("--out", default="runs/benchmark")
     learning.add_argument("--name", default="learning", help="section of BENCHMARKS.md and figure name")
+    learning.add_argument("--variant", default=None, help="name of a variant; its runs live in <algo>-<variant>")
+    learning.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameter overrides of a variant")
+    learning.add_argument("--report", nargs="*", default=None, help="runs to put in the table (default: this command's)")
     args = parser.parse_args()
     {"throughput": run_throughput, "learning": run_learning}[args.command](args)
 

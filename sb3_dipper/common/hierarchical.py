@@ -22,7 +22,6 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
@@ -32,10 +31,13 @@ from stable_baselines3.common.utils import is_vectorized_observation, safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
+from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.imitation import DemonstrationBuffer, DemoSAC
 from sb3_dipper.common.low_level import LevelLogger, SACLowLevel, SubgoalNormalizer, SubgoalVecEnv, low_level_observation_space
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition, low_level_observation
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.common.validation import check_goal_observation_space
+from sb3_dipper.envs.demos import default_demonstrations
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
 
@@ -64,6 +66,14 @@ class HierarchicalAlgorithm(BaseAlgorithm):
     :param low_policy_kwargs: ``policy_kwargs`` of the lower SAC (for example ``net_arch``)
     :param low_level_kwargs: any other keyword argument of the lower ``SAC``
     :param random_subgoal_prob: probability that a subgoal is drawn uniformly at random during training
+    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (see
+        :mod:`sb3_dipper.common.imitation`): an npz file, a Minari dataset directory, or ``"auto"`` for the task's
+        single default scripted demonstration; ``None``: no cloning
+    :param n_demos: how many demonstration episodes to use
+    :param demo_share: fraction of each lower batch drawn from the demonstrations
+    :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
+    :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
+    :param q_filter: clone only demo actions the lower critic values above the policy's
     :param max_episode_steps: base-env episode length (default: read from the env's ``TimeLimit``)
     :param policy_kwargs: keyword arguments of the higher-level policy
     :param stats_window_size: window of the rollout statistics
@@ -75,7 +85,7 @@ class HierarchicalAlgorithm(BaseAlgorithm):
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {}
-    lower: SAC
+    lower: DemoSAC
     low_level: SACLowLevel
     option_env: OptionVecEnv | None
 
@@ -99,6 +109,12 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         random_subgoal_prob: float = 0.0,
+        demo_path: str | None = None,
+        n_demos: int = 1,
+        demo_share: float = 0.125,
+        bc_coef: float = 0.0078,
+        rl_coef: float = 1e-3,
+        q_filter: bool = True,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -146,6 +162,12 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         self.low_policy_kwargs = {} if low_policy_kwargs is None else low_policy_kwargs
         self.low_level_kwargs = {} if low_level_kwargs is None else low_level_kwargs
         self.random_subgoal_prob = random_subgoal_prob
+        self.demo_path = demo_path
+        self.n_demos = n_demos
+        self.demo_share = demo_share
+        self.bc_coef = bc_coef
+        self.rl_coef = rl_coef
+        self.q_filter = q_filter
         self.max_episode_steps = max_episode_steps
         self.low_normalizer: SubgoalNormalizer | None = None
         self._low_steps_since_train = 0
@@ -199,7 +221,7 @@ class HierarchicalAlgorithm(BaseAlgorithm):
             self.n_envs,
         )
         buffer_size = self.buffer_size if self.env is not None else PREDICT_ONLY_BUFFER_SIZE * self.n_envs
-        self.lower = SAC(
+        self.lower = DemoSAC(
             "MultiInputPolicy",
             low_env,
             learning_rate=self.low_learning_rate,
@@ -215,10 +237,28 @@ class HierarchicalAlgorithm(BaseAlgorithm):
             replay_buffer_kwargs=self.replay_buffer_kwargs,
             policy_kwargs=self.low_policy_kwargs,
             device=self.device,
+            demo_share=self.demo_share,
+            bc_coef=self.bc_coef,
+            rl_coef=self.rl_coef,
+            q_filter=self.q_filter,
             **self.low_level_kwargs,
         )
+        if self.demo_path is not None and self.env is not None:
+            self.lower.demonstrations = self._load_demonstrations()
         self.lower._vec_normalize_env = self.low_normalizer  # type: ignore[assignment]
         self.low_level = SACLowLevel(self.lower, self.low_normalizer)
+
+    def _load_demonstrations(self) -> DemonstrationBuffer:
+        assert self.env is not None and self.subgoal_space is not None and self.demo_path is not None
+        if self.demo_path == "auto":
+            env_id = self.env.get_attr("spec", indices=[0])[0].id
+            demonstrations = default_demonstrations(env_id).first_episodes(self.n_demos)
+        else:
+            demonstrations = load_demonstrations(self.demo_path, self.n_demos)
+        assert isinstance(self.action_space, spaces.Box)
+        actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
+        scaled_actions = self.lower.policy.scale_action(actions)
+        return DemonstrationBuffer(demonstrations, self.subgoal_space, self.option_steps, scaled_actions)
 
     @abstractmethod
     def _setup_high_level(self) -> None:

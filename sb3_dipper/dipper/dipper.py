@@ -92,6 +92,13 @@ class DIPPER(HierarchicalAlgorithm):
     :param low_learning_rate: lower-level learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
     :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory, or
+        ``"auto"`` for the task's single default scripted demonstration; ``None``: none)
+    :param n_demos: demonstration episodes used
+    :param demo_share: fraction of each lower batch drawn from the demonstrations
+    :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
+    :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
+    :param q_filter: clone only demo actions the lower critic values above the policy's
     :param max_episode_steps: base episode length (default: the env's time limit)
     :param policy_kwargs: higher-level policy kwargs (``net_arch``, ``acting_tau``, ...)
     :param stats_window_size: window of rollout statistics
@@ -142,6 +149,12 @@ class DIPPER(HierarchicalAlgorithm):
         low_learning_rate: float | Schedule = 1e-3,
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
+        demo_path: str | None = None,
+        n_demos: int = 1,
+        demo_share: float = 0.125,
+        bc_coef: float = 0.0078,
+        rl_coef: float = 1e-3,
+        q_filter: bool = True,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -170,6 +183,12 @@ class DIPPER(HierarchicalAlgorithm):
             low_policy_kwargs=low_policy_kwargs,
             low_level_kwargs=low_level_kwargs,
             random_subgoal_prob=random_subgoal_prob,
+            demo_path=demo_path,
+            n_demos=n_demos,
+            demo_share=demo_share,
+            bc_coef=bc_coef,
+            rl_coef=rl_coef,
+            q_filter=q_filter,
             max_episode_steps=max_episode_steps,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,

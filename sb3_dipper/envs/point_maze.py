@@ -157,6 +157,9 @@ class PointMazeExpert:
     def _cell_xy(self, cell: tuple[int, int]) -> np.ndarray:
         return np.array([cell[1] + 0.5 - self._centre[0], self._centre[1] - cell[0] - 0.5])
 
+    def reset(self) -> None:
+        """Start an episode (the maze expert keeps no state)."""
+
     def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
         """The expert action for one (unbatched) maze observation."""
         position, velocity = observation["observation"][:2], observation["observation"][2:4]

@@ -1,0 +1,210 @@
+"""Demonstrations: scripted experts' episodes, stored as npz (read without pickle), or read from a Minari dataset.
+
+The DIPPER paper gives every method one demonstration on pick-and-place, push and kitchen (the authors' PIPER code uses
+it only for a Q-filtered behaviour-cloning loss on the lower level). Our scripted experts (``sb3_dipper.envs.EXPERTS``)
+make those demonstrations: ``sb3-dipper-demos --env FetchPush-v4 --n-episodes 10 --out push_demos.npz``.
+
+npz schema (one row per step, episodes concatenated in order):
+
+- ``observations/<key>`` ``(N, ...)``: the observation before each step, for ``observation``, ``achieved_goal``,
+  ``desired_goal``
+- ``next_observations/<key>`` ``(N, ...)``: the observation after it
+- ``actions`` ``(N, action_dim)``, ``rewards`` ``(N,)``, ``successes`` ``(N,)`` (``info["is_success"]`` after the step)
+- ``episode_lengths`` ``(E,)``: lengths of the episodes, summing to N
+- ``env_id`` (a string, as a 0-d array)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import gymnasium as gym
+import numpy as np
+
+OBSERVATION_KEYS = ("observation", "achieved_goal", "desired_goal")
+
+
+class ScriptedExpert(Protocol):
+    """A deterministic controller: ``reset()`` at the start of an episode, then one action per observation."""
+
+    def reset(self) -> None: ...
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray: ...
+
+
+@dataclass
+class Demonstrations:
+    """Episodes of a goal env, concatenated step by step (see the module docstring for the arrays)."""
+
+    observations: dict[str, np.ndarray]
+    next_observations: dict[str, np.ndarray]
+    actions: np.ndarray
+    rewards: np.ndarray
+    successes: np.ndarray
+    episode_lengths: np.ndarray
+    env_id: str = ""
+
+    def __len__(self) -> int:
+        return int(self.actions.shape[0])
+
+    @property
+    def n_episodes(self) -> int:
+        return int(self.episode_lengths.size)
+
+    @property
+    def episode_starts(self) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum(self.episode_lengths)[:-1]]).astype(np.int64)
+
+    def first_episodes(self, n_episodes: int) -> Demonstrations:
+        """The first ``n_episodes`` episodes."""
+        if n_episodes > self.n_episodes:
+            raise ValueError(f"Asked for {n_episodes} demonstrations but the file holds {self.n_episodes} episodes")
+        steps = int(self.episode_lengths[:n_episodes].sum())
+        return Demonstrations(
+            observations={key: value[:steps] for key, value in self.observations.items()},
+            next_observations={key: value[:steps] for key, value in self.next_observations.items()},
+            actions=self.actions[:steps],
+            rewards=self.rewards[:steps],
+            successes=self.successes[:steps],
+            episode_lengths=self.episode_lengths[:n_episodes],
+            env_id=self.env_id,
+        )
+
+    def save(self, path: str | Path) -> None:
+        arrays: dict[str, np.ndarray] = {f"observations/{key}": value for key, value in self.observations.items()}
+        arrays.update({f"next_observations/{key}": value for key, value in self.next_observations.items()})
+        arrays.update(
+            actions=self.actions,
+            rewards=self.rewards,
+            successes=self.successes,
+            episode_lengths=self.episode_lengths,
+            env_id=np.array(self.env_id),
+        )
+        np.savez_compressed(path, **arrays)  # type: ignore[arg-type]
+
+
+def collect_demonstrations(
+    env_id: str,
+    expert_factory: Callable[[gym.Env], ScriptedExpert],
+    n_episodes: int,
+    seed: int = 0,
+    env_kwargs: dict[str, Any] | None = None,
+    only_successes: bool = True,
+) -> Demonstrations:
+    """Run ``expert_factory(env.unwrapped)`` for ``n_episodes`` episodes (seeds ``seed``, ``seed + 1``, ...).
+
+    With ``only_successes``, failed episodes are skipped (the next seed is tried) so every demonstration succeeds.
+    """
+    env = gym.make(env_id, **(env_kwargs or {}))
+    expert = expert_factory(env.unwrapped)
+    episodes: list[dict[str, Any]] = []
+    episode_seed = seed
+    while len(episodes) < n_episodes:
+        if episode_seed > seed + 10 * n_episodes + 100:
+            raise RuntimeError(
+                f"The expert of {env_id} keeps failing: {len(episodes)} successes in {episode_seed - seed} tries"
+            )
+        episode = _run_episode(env, expert, episode_seed)
+        episode_seed += 1
+        if episode["successes"][-1] or not only_successes:
+            episodes.append(episode)
+    env.close()
+    return Demonstrations(
+        observations={key: np.concatenate([e["observations"][key] for e in episodes]) for key in OBSERVATION_KEYS},
+        next_observations={key: np.concatenate([e["next_observations"][key] for e in episodes]) for key in OBSERVATION_KEYS},
+        actions=np.concatenate([e["actions"] for e in episodes]).astype(np.float32),
+        rewards=np.concatenate([e["rewards"] for e in episodes]).astype(np.float32),
+        successes=np.concatenate([e["successes"] for e in episodes]).astype(np.float32),
+        episode_lengths=np.array([len(e["actions"]) for e in episodes], dtype=np.int64),
+        env_id=env_id,
+    )
+
+
+def _run_episode(env: gym.Env, expert: ScriptedExpert, seed: int) -> dict[str, Any]:
+    obs, _ = env.reset(seed=seed)
+    expert.reset()
+    steps: dict[str, list] = {"observations": [], "next_observations": [], "actions": [], "rewards": [], "successes": []}
+    done = False
+    while not done:
+        action = np.asarray(expert.act(obs), dtype=np.float32)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        for name, value in (("observations", obs), ("next_observations", next_obs)):
+            steps[name].append({key: np.asarray(value[key], dtype=np.float32) for key in OBSERVATION_KEYS})
+        steps["actions"].append(action)
+        steps["rewards"].append(reward)
+        steps["successes"].append(float(info.get("is_success", 0.0)))
+        obs, done = next_obs, terminated or truncated
+    for name in ("observations", "next_observations"):
+        steps[name] = {key: np.stack([step[key] for step in steps[name]]) for key in OBSERVATION_KEYS}  # type: ignore[assignment]
+    return steps
+
+
+def load_demonstrations(path: str | Path, n_episodes: int | None = None) -> Demonstrations:
+    """Read demonstrations from our npz file or from a Minari dataset directory (needs ``pip install minari``)."""
+    path = Path(path)
+    demonstrations = _load_minari(path) if path.is_dir() else _load_npz(path)
+    return demonstrations if n_episodes is None else demonstrations.first_episodes(n_episodes)
+
+
+def _load_npz(path: Path) -> Demonstrations:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except ValueError as error:
+        raise ValueError(f"Malformed demonstration file {path}: {error}") from error
+    required = ["actions", "rewards", "successes", "episode_lengths"] + [
+        f"{group}/{key}" for group in ("observations", "next_observations") for key in OBSERVATION_KEYS
+    ]
+    missing = [key for key in required if key not in arrays]
+    if missing:
+        raise ValueError(f"Malformed demonstration file {path}: missing {missing} (schema: sb3_dipper.common.demonstrations)")
+    n_steps = arrays["actions"].shape[0]
+    lengths = arrays["episode_lengths"]
+    if lengths.ndim != 1 or lengths.sum() != n_steps or np.any(lengths < 1):
+        raise ValueError(f"Malformed demonstration file {path}: episode_lengths must be positive and sum to {n_steps} steps")
+    for key in required:
+        if arrays[key].shape[0] != n_steps and key != "episode_lengths":
+            raise ValueError(f"Malformed demonstration file {path}: {key} has {arrays[key].shape[0]} rows, not {n_steps}")
+        if not np.all(np.isfinite(arrays[key])):
+            raise ValueError(f"Malformed demonstration file {path}: {key} holds NaN or infinite values")
+    return Demonstrations(
+        observations={key: arrays[f"observations/{key}"].astype(np.float32) for key in OBSERVATION_KEYS},
+        next_observations={key: arrays[f"next_observations/{key}"].astype(np.float32) for key in OBSERVATION_KEYS},
+        actions=arrays["actions"].astype(np.float32),
+        rewards=arrays["rewards"].astype(np.float32),
+        successes=arrays["successes"].astype(np.float32),
+        episode_lengths=lengths.astype(np.int64),
+        env_id=str(arrays.get("env_id", "")),
+    )
+
+
+def _load_minari(path: Path) -> Demonstrations:
+    try:
+        from minari import MinariDataset  # type: ignore[import-not-found]
+    except ImportError as error:
+        raise ImportError(f"{path} is a directory: reading a Minari dataset needs `pip install minari`") from error
+    dataset = MinariDataset(path / "data" if (path / "data").is_dir() else path)
+    episodes = list(dataset.iterate_episodes())
+    if not episodes or not isinstance(episodes[0].observations, dict):
+        raise ValueError(f"Minari dataset {path} must hold goal-env episodes with Dict observations {OBSERVATION_KEYS}")
+    missing = [key for key in OBSERVATION_KEYS if key not in episodes[0].observations]
+    if missing:
+        raise ValueError(f"Minari dataset {path} has no observation keys {missing}; nested goals must be flattened first")
+
+    def stacked(part: Callable[[Any], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        return {key: np.concatenate([part(e)[key] for e in episodes]).astype(np.float32) for key in OBSERVATION_KEYS}
+
+    return Demonstrations(
+        observations=stacked(lambda e: {key: e.observations[key][:-1] for key in OBSERVATION_KEYS}),
+        next_observations=stacked(lambda e: {key: e.observations[key][1:] for key in OBSERVATION_KEYS}),
+        actions=np.concatenate([e.actions for e in episodes]).astype(np.float32),
+        rewards=np.concatenate([e.rewards for e in episodes]).astype(np.float32),
+        successes=np.concatenate([np.asarray(e.infos.get("is_success", np.zeros(len(e.actions)))) for e in episodes]).astype(
+            np.float32
+        ),
+        episode_lengths=np.array([len(e.actions) for e in episodes], dtype=np.int64),
+        env_id=str(dataset.env_spec.id if dataset.env_spec is not None else ""),
+    )

@@ -1,0 +1,211 @@
+"""Q-filtered behaviour cloning on the lower level from demonstrations (the authors' PIPER code, used by DIPPER).
+
+Each lower-level batch mixes replay transitions with demonstration transitions (a ``demo_share`` of the batch). The
+demonstrations are relabelled as HER relabels replay: the subgoal of a demo step is an achieved subgoal of the same
+episode at most ``horizon`` (K) steps later, so the demo teaches the lower level to reach the kind of subgoals it gets.
+Both parts train the critic; the actor loss is
+
+    rl_coef * mean(alpha * log pi - min_i Q_i(s, pi(s)))  +  bc_coef * sum_{demo, Q-filter} ||mu(s) - a_demo||^2
+
+where ``mu`` is the deterministic action and the Q-filter keeps a demo step only where the first critic values the
+demonstrated action above the policy's, ``Q_1(s, a_demo) > Q_1(s, mu(s))`` (Nair et al. 2018; PIPER uses a sum over the
+kept demo steps, ``rl_coef = 1e-3`` and a per-task ``bc_coef``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+from stable_baselines3 import SAC
+from stable_baselines3.common.policies import ContinuousCritic
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_dipper.common.demonstrations import Demonstrations
+from sb3_dipper.common.subgoals import SubgoalSpace
+
+
+class DemonstrationBuffer:
+    """Lower-level transitions of demonstrations, sampled with subgoals relabelled from the next ``horizon`` steps.
+
+    :param demonstrations: the episodes
+    :param subgoal_space: projects achieved goals to subgoals and gives the subgoal reward
+    :param horizon: K, how far ahead a relabelled subgoal may lie
+    :param scaled_actions: the demonstrated actions rescaled to the lower policy's [-1, 1] action space
+    """
+
+    def __init__(self, demonstrations: Demonstrations, subgoal_space: SubgoalSpace, horizon: int, scaled_actions: np.ndarray):
+        self.subgoal_space = subgoal_space
+        self.horizon = horizon
+        self.observation = demonstrations.observations["observation"].astype(np.float32)
+        self.next_observation = demonstrations.next_observations["observation"].astype(np.float32)
+        self.achieved = subgoal_space.project(demonstrations.observations["achieved_goal"]).astype(np.float32)
+        self.next_achieved = subgoal_space.project(demonstrations.next_observations["achieved_goal"]).astype(np.float32)
+        self.actions = scaled_actions.astype(np.float32)
+        ends = np.cumsum(demonstrations.episode_lengths)
+        self.last_step = np.repeat(ends - 1, demonstrations.episode_lengths)
+
+    def __len__(self) -> int:
+        return int(self.actions.shape[0])
+
+    def sample(self, batch_size: int) -> tuple[dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray], np.ndarray]:
+        """``(observations, actions, next_observations, rewards)`` of ``batch_size`` relabelled demo steps."""
+        steps = np.random.randint(len(self), size=batch_size)
+        goal_steps = np.minimum(steps + np.random.randint(self.horizon, size=batch_size), self.last_step[steps])
+        goals = self.next_achieved[goal_steps]
+        observations = {"observation": self.observation[steps], "achieved_goal": self.achieved[steps], "desired_goal": goals}
+        next_observations = {
+            "observation": self.next_observation[steps],
+            "achieved_goal": self.next_achieved[steps],
+            "desired_goal": goals,
+        }
+        rewards = self.subgoal_space.compute_reward(self.next_achieved[steps], goals)
+        return observations, self.actions[steps], next_observations, rewards
+
+
+class DemoSAC(SAC):
+    """SB3's SAC whose actor also clones Q-filtered demonstrations (see the module docstring); plain SAC without them.
+
+    :param demonstrations: demo transitions (``None``: this is exactly SB3's SAC)
+    :param demo_share: fraction of each batch drawn from the demonstrations
+    :param bc_coef: weight of the behaviour-cloning sum (PIPER's lambda_2)
+    :param rl_coef: weight of SAC's actor loss when cloning (PIPER's lambda_1)
+    :param q_filter: clone only demo steps whose action the critic values above the policy's
+    """
+
+    def __init__(
+        self,
+        *args: Any,
+        demonstrations: DemonstrationBuffer | None = None,
+        demo_share: float = 0.125,
+        bc_coef: float = 0.0078,
+        rl_coef: float = 1e-3,
+        q_filter: bool = True,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(*args, **kwargs)
+        self.demonstrations = demonstrations
+        self.demo_share = demo_share
+        self.bc_coef = bc_coef
+        self.rl_coef = rl_coef
+        self.q_filter = q_filter
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        if self.demonstrations is None:
+            return super().train(gradient_steps, batch_size)
+        self.policy.set_training_mode(True)
+        optimizers = [self.actor.optimizer, self.critic.optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._update_learning_rate(optimizers)
+        n_demo = max(1, round(self.demo_share * batch_size))
+        logs: dict[str, list[float]] = {
+            "actor_loss": [],
+            "critic_loss": [],
+            "ent_coef": [],
+            "bc_loss": [],
+            "q_filter_kept": [],
+        }
+        for _ in range(gradient_steps):
+            batch = self._mixed_batch(batch_size - n_demo, n_demo)
+            is_demo = th.zeros(batch_size, dtype=th.bool, device=self.device)
+            is_demo[batch_size - n_demo :] = True
+
+            # Entropy coefficient (as SAC).
+            actions_pi, log_prob = self.actor.action_log_prob(batch.observations)
+            log_prob = log_prob.reshape(-1, 1)
+            ent_coef = self._entropy_coefficient(log_prob)
+            logs["ent_coef"].append(ent_coef.item())
+
+            # Critic: soft Bellman targets on replay and demo transitions alike.
+            with th.no_grad():
+                next_actions, next_log_prob = self.actor.action_log_prob(batch.next_observations)
+                next_q = (
+                    th.cat(self.critic_target(batch.next_observations, next_actions), dim=1).min(dim=1, keepdim=True).values
+                )
+                target_q = batch.rewards + (1 - batch.dones) * self.gamma * (next_q - ent_coef * next_log_prob.reshape(-1, 1))
+            current_q = self.critic(batch.observations, batch.actions)
+            critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current_q)
+            self.critic.optimizer.zero_grad()
+            critic_loss.backward()  # type: ignore[union-attr]
+            self.critic.optimizer.step()
+            logs["critic_loss"].append(critic_loss.item())  # type: ignore[union-attr]
+
+            # Actor: SAC's loss, scaled, plus the Q-filtered behaviour-cloning sum over demo steps.
+            min_q_pi = th.cat(self.critic(batch.observations, actions_pi), dim=1).min(dim=1, keepdim=True).values
+            sac_loss = (ent_coef * log_prob - min_q_pi).mean()
+            bc_loss, kept = self._cloning_loss(batch, is_demo)
+            actor_loss = self.rl_coef * sac_loss + self.bc_coef * bc_loss
+            self.actor.optimizer.zero_grad()
+            actor_loss.backward()
+            self.actor.optimizer.step()
+            logs["actor_loss"].append(actor_loss.item())
+            logs["bc_loss"].append(bc_loss.item())
+            logs["q_filter_kept"].append(kept)
+
+            if self._n_updates % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+            self._n_updates += 1
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, values in logs.items():
+            self.logger.record(f"train/{key}", float(np.mean(values)))
+
+    def _mixed_batch(self, n_replay: int, n_demo: int) -> DictReplayBufferSamples:
+        """Replay transitions followed by ``n_demo`` demo transitions, normalised alike."""
+        replay = self.replay_buffer.sample(n_replay, env=self._vec_normalize_env)  # type: ignore[union-attr]
+        observations, actions, next_observations, rewards = self.demonstrations.sample(n_demo)  # type: ignore[union-attr]
+        if self._vec_normalize_env is not None:
+            observations = self._vec_normalize_env.normalize_obs(observations)  # type: ignore[assignment]
+            next_observations = self._vec_normalize_env.normalize_obs(next_observations)  # type: ignore[assignment]
+
+        def joined(replay_part: dict[str, th.Tensor], demo_part: dict[str, np.ndarray]) -> dict[str, th.Tensor]:
+            return {
+                key: th.cat((value, th.as_tensor(demo_part[key], device=self.device))) for key, value in replay_part.items()
+            }
+
+        return DictReplayBufferSamples(
+            observations=joined(replay.observations, observations),  # type: ignore[arg-type]
+            actions=th.cat((replay.actions, th.as_tensor(actions, device=self.device))),
+            next_observations=joined(replay.next_observations, next_observations),  # type: ignore[arg-type]
+            dones=th.cat((replay.dones, th.zeros((n_demo, 1), device=self.device))),
+            rewards=th.cat((replay.rewards, th.as_tensor(rewards, device=self.device).reshape(-1, 1))),
+        )
+
+    def _entropy_coefficient(self, log_prob: th.Tensor) -> th.Tensor:
+        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
+            return self.ent_coef_tensor
+        ent_coef_loss = -(self.log_ent_coef * (log_prob + float(self.target_entropy)).detach()).mean()
+        self.ent_coef_optimizer.zero_grad()
+        ent_coef_loss.backward()
+        self.ent_coef_optimizer.step()
+        return th.exp(self.log_ent_coef.detach())
+
+    def _cloning_loss(self, batch: DictReplayBufferSamples, is_demo: th.Tensor) -> tuple[th.Tensor, float]:
+        """Sum of squared errors between the deterministic action and the demo action, over Q-filtered demo steps."""
+        demo_obs = {key: value[is_demo] for key, value in batch.observations.items()}
+        demo_actions = batch.actions[is_demo]
+        policy_actions = self.actor(demo_obs, deterministic=True)
+        keep = (
+            q_filter_mask(self.critic, demo_obs, demo_actions, policy_actions)
+            if self.q_filter
+            else th.ones_like(demo_actions[:, 0])
+        )
+        return behaviour_cloning_loss(policy_actions, demo_actions, keep), float(keep.mean())
+
+
+def q_filter_mask(
+    critic: ContinuousCritic, observations: dict[str, th.Tensor], demo_actions: th.Tensor, policy_actions: th.Tensor
+) -> th.Tensor:
+    """1 where the first critic values the demonstrated action strictly above the policy's action, else 0 (no gradient)."""
+    with th.no_grad():
+        demo_values = critic.q1_forward(observations, demo_actions)  # type: ignore[arg-type]
+        policy_values = critic.q1_forward(observations, policy_actions)  # type: ignore[arg-type]
+        return (demo_values > policy_values).float().reshape(-1)
+
+
+def behaviour_cloning_loss(policy_actions: th.Tensor, demo_actions: th.Tensor, keep: th.Tensor) -> th.Tensor:
+    """``sum_i keep_i * ||policy_action_i - demo_action_i||^2`` (a sum, as in the PIPER code, not a mean)."""
+    return (keep * (policy_actions - demo_actions).pow(2).sum(dim=-1)).sum()

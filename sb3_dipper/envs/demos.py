@@ -1,0 +1,64 @@
+"""Scripted-expert demonstrations of our tasks: the single default demonstration and the ``sb3-dipper-demos`` command."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sb3_dipper.common.demonstrations import Demonstrations, collect_demonstrations, load_demonstrations
+
+
+def expert_demonstrations(
+    env_id: str, n_episodes: int, seed: int = 0, env_kwargs: dict[str, Any] | None = None, only_successes: bool = True
+) -> Demonstrations:
+    """Episodes of the registered scripted expert of ``env_id``."""
+    from sb3_dipper.envs import EXPERTS
+
+    if env_id not in EXPERTS:
+        raise ValueError(f"No scripted expert for {env_id!r}; experts exist for {sorted(EXPERTS)}")
+    return collect_demonstrations(env_id, EXPERTS[env_id], n_episodes, seed, env_kwargs, only_successes)
+
+
+def default_demonstration_path(env_id: str) -> Path:
+    """Where the single default demonstration of ``env_id`` is cached (``$SB3_DIPPER_CACHE`` or ~/.cache/sb3-dipper)."""
+    cache = Path(os.environ.get("SB3_DIPPER_CACHE", Path.home() / ".cache" / "sb3-dipper"))
+    return cache / "demonstrations" / f"{env_id}.npz"
+
+
+def default_demonstrations(env_id: str) -> Demonstrations:
+    """The task's single default demonstration: the expert's first successful episode from seed 0, made on first use.
+
+    The expert and the seeded env are deterministic, so a cached file and a fresh one hold the same episode.
+    """
+    path = default_demonstration_path(env_id)
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        expert_demonstrations(env_id, n_episodes=1, seed=0).save(path)
+    return load_demonstrations(path)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``sb3-dipper-demos``: write N scripted-expert demonstrations of an env to an npz file."""
+    parser = argparse.ArgumentParser(description="Write scripted-expert demonstrations to an npz file.")
+    parser.add_argument("--env", required=True, help="env id with a registered scripted expert")
+    parser.add_argument("--n-episodes", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True, type=Path)
+    parser.add_argument("--keep-failures", action="store_true", help="also keep episodes the expert failed")
+    args = parser.parse_args(argv)
+    import sb3_dipper  # noqa: F401  (registers our env ids)
+
+    demonstrations = expert_demonstrations(args.env, args.n_episodes, args.seed, only_successes=not args.keep_failures)
+    demonstrations.save(args.out)
+    success = demonstrations.successes[np.cumsum(demonstrations.episode_lengths) - 1].mean()
+    print(
+        f"Wrote {demonstrations.n_episodes} episodes ({len(demonstrations)} steps, final success {success:.2f}) to {args.out}"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,141 @@
+"""Demonstrations (npz round trip, malformed files) and the lower level's Q-filtered behaviour cloning."""
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_dipper import DIPPER, HIER
+from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.imitation import DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
+from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.envs.demos import expert_demonstrations
+from tests.conftest import short_maze, tiny_model
+
+
+@pytest.fixture(scope="module")
+def maze_demos(tmp_path_factory):
+    path = tmp_path_factory.mktemp("demos") / "maze.npz"
+    expert_demonstrations("PointMazeFourRooms-v0", n_episodes=2, seed=0).save(path)
+    return path
+
+
+def test_demonstrations_round_trip(maze_demos):
+    demos = load_demonstrations(maze_demos)
+    assert demos.n_episodes == 2 and len(demos) == 400 and demos.env_id == "PointMazeFourRooms-v0"
+    assert demos.successes[199] == 1.0 and demos.successes[-1] == 1.0
+    np.testing.assert_allclose(demos.next_observations["observation"][:-1][:199], demos.observations["observation"][1:200])
+    one = load_demonstrations(maze_demos, n_episodes=1)
+    assert one.n_episodes == 1 and len(one) == 200
+    with pytest.raises(ValueError, match="holds 2 episodes"):
+        load_demonstrations(maze_demos, n_episodes=3)
+
+
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [
+        (lambda arrays: arrays.pop("actions"), "missing"),
+        (lambda arrays: arrays.update(episode_lengths=np.array([150, 150])), "sum to 400"),
+        (lambda arrays: arrays.update(rewards=np.zeros(10)), "rewards has 10 rows"),
+        (lambda arrays: arrays["actions"].__setitem__((3, 0), np.nan), "NaN"),
+    ],
+)
+def test_malformed_demonstration_files_give_a_clear_error(maze_demos, tmp_path, corrupt, message):
+    with np.load(maze_demos) as data:
+        arrays = {key: data[key] for key in data.files}
+    corrupt(arrays)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match=f"Malformed demonstration file.*{message}"):
+        load_demonstrations(tmp_path / "bad.npz")
+
+
+def test_a_minari_dataset_directory_is_read(maze_demos, tmp_path):
+    minari_storage = pytest.importorskip("minari.dataset.minari_storage")
+    from minari.data_collector.episode_buffer import EpisodeBuffer
+
+    demos = load_demonstrations(maze_demos)
+    env = short_maze().envs[0]
+    storage = minari_storage.MinariStorage.new(tmp_path / "data", env.observation_space, env.action_space, data_format="hdf5")
+    episodes = []
+    for start, length in zip(demos.episode_starts, demos.episode_lengths, strict=True):
+        steps = slice(start, start + length)
+        observations = {
+            key: np.concatenate([demos.observations[key][steps], demos.next_observations[key][start + length - 1][None]])
+            for key in demos.observations
+        }
+        episodes.append(
+            EpisodeBuffer(
+                observations=observations,
+                actions=demos.actions[steps],
+                rewards=list(demos.rewards[steps]),
+                terminations=[False] * int(length),
+                truncations=[False] * (int(length) - 1) + [True],
+                infos={"is_success": demos.successes[steps]},
+            )
+        )
+    storage.update_episodes(episodes)
+    storage.update_metadata(
+        {"dataset_id": "sb3-dipper/maze-demos-v0", "minari_version": pytest.importorskip("minari").__version__}
+    )
+    loaded = load_demonstrations(tmp_path)
+    assert loaded.n_episodes == 2
+    np.testing.assert_allclose(loaded.actions, demos.actions)
+    np.testing.assert_allclose(loaded.next_observations["achieved_goal"], demos.next_observations["achieved_goal"])
+    np.testing.assert_array_equal(loaded.successes, demos.successes)
+
+
+def test_demo_subgoals_are_relabelled_within_the_option_horizon(maze_demos):
+    demos = load_demonstrations(maze_demos)
+    space = SubgoalSpace(np.full(2, -3.5), np.full(2, 3.5), threshold=0.45)
+    buffer = DemonstrationBuffer(demos, space, horizon=5, scaled_actions=demos.actions)
+    np.random.seed(0)
+    observations, actions, next_observations, rewards = buffer.sample(256)
+    achieved_later = buffer.next_achieved
+    for row in range(256):
+        step = int(np.flatnonzero(np.all(buffer.observation == observations["observation"][row], axis=1))[0])
+        window = achieved_later[step : min(step + 5, buffer.last_step[step] + 1)]
+        assert np.any(np.all(window == observations["desired_goal"][row], axis=1))
+    distance = np.linalg.norm(next_observations["achieved_goal"] - observations["desired_goal"], axis=1)
+    np.testing.assert_array_equal(rewards, -(distance > 0.45).astype(np.float32))
+    np.testing.assert_array_equal(next_observations["desired_goal"], observations["desired_goal"])
+
+
+def test_behaviour_cloning_loss_by_hand():
+    policy = th.tensor([[0.0, 0.5], [1.0, 1.0], [0.2, -0.2]])
+    demo = th.tensor([[1.0, 0.5], [0.0, 0.0], [0.2, 0.0]])
+    # Squared errors per row: 1.0, 2.0, 0.04; the filter keeps rows 0 and 2: 1.04.
+    assert behaviour_cloning_loss(policy, demo, th.tensor([1.0, 0.0, 1.0])).item() == pytest.approx(1.04)
+
+
+class FixedCritic:
+    """Q_1(s, a) = a[0]: the first action component is all the critic cares about."""
+
+    def q1_forward(self, observations, actions):
+        return actions[:, :1]
+
+
+def test_q_filter_keeps_demo_actions_the_critic_prefers():
+    demo = th.tensor([[0.9, 0.0], [0.1, 0.0], [0.5, 0.0]])
+    policy = th.tensor([[0.5, 0.0], [0.5, 0.0], [0.5, 0.0]])
+    np.testing.assert_array_equal(q_filter_mask(FixedCritic(), {}, demo, policy).numpy(), [1.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, HIER])
+def test_lower_level_clones_demonstrations(model_class, maze_demos, tmp_path):
+    from stable_baselines3.common.logger import configure
+
+    model = tiny_model(model_class, short_maze(), demo_path=str(maze_demos), n_demos=1, demo_share=0.25)
+    assert len(model.lower.demonstrations) == 200
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    header = open(tmp_path / "progress.csv").readline().strip().split(",")
+    assert {"train/low_bc_loss", "train/low_q_filter_kept"} <= set(header)
+
+
+def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypatch):
+    from sb3_dipper.envs.demos import default_demonstration_path, default_demonstrations
+
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    first = default_demonstrations("PointMazeFourRooms-v0")
+    assert default_demonstration_path("PointMazeFourRooms-v0").exists() and first.n_episodes == 1
+    fresh = expert_demonstrations("PointMazeFourRooms-v0", n_episodes=1, seed=0)
+    np.testing.assert_array_equal(first.actions, fresh.actions)
