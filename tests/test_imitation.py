@@ -88,7 +88,7 @@ def test_demo_subgoals_are_relabelled_within_the_option_horizon(maze_demos):
     space = SubgoalSpace(np.full(2, -3.5), np.full(2, 3.5), threshold=0.45)
     buffer = DemonstrationBuffer(demos, space, horizon=5, scaled_actions=demos.actions)
     np.random.seed(0)
-    observations, actions, next_observations, rewards = buffer.sample(256)
+    observations, _, next_observations, rewards = buffer.sample(256)
     achieved_later = buffer.next_achieved
     for row in range(256):
         step = int(np.flatnonzero(np.all(buffer.observation == observations["observation"][row], axis=1))[0])

@@ -1,8 +1,19 @@
-"""Environments of this package, registered with gymnasium on ``import sb3_dipper``."""
+"""Environments of this package, registered with gymnasium on ``import sb3_dipper``, and their scripted experts."""
+
+from collections.abc import Callable
+from typing import Any
 
 import gymnasium as gym
 
+from sb3_dipper.envs import fetch, kitchen
 from sb3_dipper.envs.point_maze import PointMazeExpert, PointMazeFourRoomsEnv, PointMazeReachController
+
+# env id -> factory(env) of a scripted expert with reset() and act(observation) (see sb3_dipper.common.demonstrations)
+EXPERTS: dict[str, Callable[[gym.Env], Any]] = {
+    "PointMazeFourRooms-v0": lambda env: PointMazeExpert(),
+    **fetch.EXPERTS,
+    **kitchen.EXPERTS,
+}
 
 
 def register_envs() -> None:
@@ -13,6 +24,8 @@ def register_envs() -> None:
             entry_point="sb3_dipper.envs.point_maze:PointMazeFourRoomsEnv",
             max_episode_steps=200,
         )
+    fetch.register_fetch_envs()
+    kitchen.register_kitchen_envs()
 
 
-__all__ = ["PointMazeExpert", "PointMazeFourRoomsEnv", "PointMazeReachController", "register_envs"]
+__all__ = ["EXPERTS", "PointMazeExpert", "PointMazeFourRoomsEnv", "PointMazeReachController", "register_envs"]
