@@ -11,24 +11,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from stable_baselines3.common.evaluation import evaluate_policy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
-from configs import load_entry, make_env, make_model
+from configs import episode_successes, load_entry, make_env, make_model
 
 ENV_ID = "PointMazeFourRooms-v0"
 
 
 def success_rate(model, n_episodes: int, seed: int) -> float:
-    successes: list[float] = []
-
-    def record(local_vars: dict, _globals: dict) -> None:
-        if local_vars["done"]:
-            successes.append(float(local_vars["info"].get("is_success", 0.0)))
-
     env = make_env(ENV_ID, load_entry("dipper", ENV_ID), seed=seed, n_envs=10)
-    evaluate_policy(model, env, n_eval_episodes=n_episodes, deterministic=True, callback=record)
-    return float(np.mean(successes))
+    return float(np.mean(episode_successes(model, env, n_episodes)))
 
 
 def test_dipper_learns_the_far_room_within_a_test_budget():

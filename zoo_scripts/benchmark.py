@@ -30,10 +30,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.evaluation import evaluate_policy
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import load_entry, make_env, make_model, torch_threads
+from configs import episode_successes, load_entry, make_env, make_model, torch_threads
 
 REPO = Path(__file__).resolve().parent.parent
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
@@ -131,15 +130,8 @@ class PeriodicSuccess(BaseCallback):
         return True
 
     def evaluate(self) -> None:
-        episode_successes: list[float] = []
-
-        def record(local_vars: dict, _globals: dict) -> None:
-            if local_vars["done"]:
-                episode_successes.append(float(local_vars["info"].get("is_success", 0.0)))
-
-        evaluate_policy(self.model, self.eval_env, n_eval_episodes=self.n_episodes, deterministic=True, callback=record)
         self.timesteps.append(self.num_timesteps)
-        self.successes.append(episode_successes[: self.n_episodes])
+        self.successes.append(episode_successes(self.model, self.eval_env, self.n_episodes))
         np.savez(self.path, timesteps=np.array(self.timesteps), successes=np.array(self.successes))
 
 

@@ -17,6 +17,7 @@ from sb3_contrib import TQC
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
@@ -73,6 +74,18 @@ def make_env(env_id: str, entry: dict[str, Any], seed: int, n_envs: int | None =
     if normalize:
         env = VecNormalize(env, **(normalize if isinstance(normalize, dict) else {}))
     return env
+
+
+def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int) -> list[float]:
+    """``info["is_success"]`` at the end of each of ``n_episodes`` deterministic evaluation episodes."""
+    successes: list[float] = []
+
+    def record(local_vars: dict[str, Any], _globals: dict[str, Any]) -> None:
+        if local_vars["done"]:
+            successes.append(float(local_vars["info"].get("is_success", 0.0)))
+
+    evaluate_policy(model, env, n_eval_episodes=n_episodes, deterministic=True, callback=record)
+    return successes[:n_episodes]
 
 
 def torch_threads() -> int:

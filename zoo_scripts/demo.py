@@ -18,12 +18,11 @@ import matplotlib
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import EvalCallback
-from stable_baselines3.common.evaluation import evaluate_policy
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from configs import load_entry, make_env, make_model, torch_threads
+from configs import episode_successes, load_entry, make_env, make_model, torch_threads
 
 ENV_ID = "PointMazeFourRooms-v0"
 
@@ -31,14 +30,7 @@ ENV_ID = "PointMazeFourRooms-v0"
 def final_success_rate(model, env_id: str, seed: int, n_episodes: int) -> float:
     """Deterministic success rate over ``n_episodes`` new episodes (success: at the goal when the episode ends)."""
     eval_env = make_env(env_id, load_entry("dipper", env_id), seed=seed, n_envs=10)
-    successes: list[float] = []
-
-    def record(local_vars: dict, _globals: dict) -> None:
-        if local_vars["done"]:
-            successes.append(float(local_vars["info"].get("is_success", 0.0)))
-
-    evaluate_policy(model, eval_env, n_eval_episodes=n_episodes, deterministic=True, callback=record)
-    return float(np.mean(successes))
+    return float(np.mean(episode_successes(model, eval_env, n_episodes)))
 
 
 def plot_success_curve(evaluations: Path, output: Path) -> None:

@@ -130,6 +130,8 @@ class HIER(HierarchicalAlgorithm):
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
+    # Subclasses that change how the higher level learns (PIPER's reward model, SAGA's discriminator) swap this class.
+    higher_class: ClassVar[type[SAC]] = SAC
     higher: SAC
 
     def __init__(
@@ -220,7 +222,7 @@ class HIER(HierarchicalAlgorithm):
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None
         high_env = OptionGoalVecEnv(self.observation_space, self.subgoal_space.unit_box, self.env, self.n_envs)  # type: ignore[arg-type]
-        self.higher = SAC(
+        self.higher = self.higher_class(
             self.policy_class,  # type: ignore[arg-type]
             high_env,
             learning_rate=self.learning_rate,
