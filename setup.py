@@ -1,3 +1,4 @@
+import glob
 import os
 
 from setuptools import find_packages, setup
@@ -16,6 +17,8 @@ setup(
     long_description_content_type="text/markdown",
     packages=find_packages(include=["sb3_dipper", "sb3_dipper.*"]),
     package_data={"sb3_dipper": ["py.typed", "version.txt"]},
+    # The zoo's hyperparameter files, found by sb3_dipper.zoo.hyperparams_dir() in an installed package.
+    data_files=[("share/sb3-dipper/hyperparams", sorted(glob.glob("hyperparams/*.yml")))],
     python_requires=">=3.10",
     install_requires=[
         # 2.13.0 is the CPU wheel these machines carry; the Makefile installs it first so this range adds nothing.
@@ -32,13 +35,15 @@ setup(
     ],
     extras_require={
         # rl-zoo3's enjoy imports requests without declaring it.
-        "zoo": ["rl-zoo3>=2.9.2,<3", "requests", "pyyaml"],
+        "zoo": ["rl-zoo3[plots]>=2.9.2,<3", "requests", "pyyaml"],
         "plots": ["matplotlib>=3.7", "pandas>=2.2", "rliable>=1.2"],
         # Reading Minari dataset directories as demonstrations.
         "minari": ["minari[hdf5]>=0.5"],
         "tests": ["pytest>=8", "pytest-timeout", "ruff", "mypy", "types-PyYAML", "minari[hdf5]>=0.5"],
     },
-    entry_points={"console_scripts": ["sb3-dipper-demos = sb3_dipper.envs.demos:main"]},
+    entry_points={
+        "console_scripts": ["sb3-dipper-demos = sb3_dipper.envs.demos:main", "sb3-dipper-zoo = sb3_dipper.zoo:main"]
+    },
     license="MIT",
     classifiers=[
         "Programming Language :: Python :: 3",

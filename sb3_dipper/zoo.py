@@ -1,0 +1,113 @@
+"""RL-Zoo integration: our algorithms, their hyperparameter files and Optuna samplers, registered into rl-zoo3.
+
+rl-zoo3 has no plugin mechanism; its documented recipe for external algorithms is to add them to ``rl_zoo3.ALGOS``
+(and, for ``-optimize``, to its sampler and converter tables) before calling its entry points. ``sb3-dipper-zoo``
+does that, then runs rl-zoo3's own CLI with its own flags:
+
+    sb3-dipper-zoo train --algo dipper --env PointMazeFourRooms-v0 --seed 0
+    sb3-dipper-zoo enjoy --algo dipper --env PointMazeFourRooms-v0 -f logs/ --no-render -n 2000
+    sb3-dipper-zoo train --algo dipper --env PointMazeFourRooms-v0 -optimize --storage logs/dipper.log --study-name s1
+
+For algorithms and envs this package has hyperparameters for, ``train`` reads ``hyperparams/<algo>.yml`` unless
+``--conf-file`` is given. rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so it is imported only here.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import optuna
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_dipper.dipper import DIPPER
+from sb3_dipper.hier import HIER
+
+# Zoo names: the same class can appear under several names so that comparison plots show each as its own line.
+ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
+    "dipper": DIPPER,
+    "dipper_paper": DIPPER,
+    "dipper_nov": DIPPER,
+    "hier": HIER,
+}
+
+
+def hyperparams_dir() -> Path:
+    """Our hyperparameter files: beside the package in a checkout, under ``<prefix>/share/sb3-dipper`` when installed."""
+    checkout = Path(__file__).resolve().parent.parent / "hyperparams"
+    if checkout.is_dir():
+        return checkout
+    return Path(sys.prefix) / "share" / "sb3-dipper" / "hyperparams"
+
+
+def sample_dipper_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Optuna search space of DIPPER's higher level and option length (the lower SAC keeps its YAML settings)."""
+    return {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-4, 3e-3, log=True),
+        "beta": trial.suggest_float("beta", 0.01, 1.0, log=True),
+        "value_reg_coef": trial.suggest_categorical("value_reg_coef", [0.0, 0.01, 0.1, 1.0]),
+        "nll_coef": trial.suggest_categorical("nll_coef", [0.0, 0.5, 1.0, 2.0]),
+        "option_steps": trial.suggest_categorical("option_steps", [10, 15, 20, 25]),
+        "pairs_per_batch": trial.suggest_categorical("pairs_per_batch", [32, 64, 128]),
+        "random_subgoal_prob": trial.suggest_categorical("random_subgoal_prob", [0.0, 0.1, 0.2, 0.3]),
+        "planning_lookahead": trial.suggest_categorical("planning_lookahead", [1, 2, 3]),
+    }
+
+
+def sample_hier_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Optuna search space of HIER's higher SAC and option length."""
+    return {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-4, 3e-3, log=True),
+        "high_gamma": trial.suggest_categorical("high_gamma", [0.9, 0.95, 0.98]),
+        "high_batch_size": trial.suggest_categorical("high_batch_size", [128, 256, 512]),
+        "option_steps": trial.suggest_categorical("option_steps", [10, 15, 20, 25]),
+        "random_subgoal_prob": trial.suggest_categorical("random_subgoal_prob", [0.0, 0.1, 0.2, 0.3]),
+    }
+
+
+def keep_params(params: dict[str, Any]) -> dict[str, Any]:
+    """Our samplers return constructor kwargs directly, so a stored trial converts to itself."""
+    return dict(params)
+
+
+SAMPLERS = {"dipper": sample_dipper_params, "dipper_paper": sample_dipper_params, "dipper_nov": sample_dipper_params}
+SAMPLERS["hier"] = sample_hier_params
+
+
+def register() -> None:
+    """Make rl-zoo3 know our algorithms, samplers and env ids (idempotent)."""
+    import gymnasium as gym
+    import gymnasium_robotics
+    import rl_zoo3
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+
+    gym.register_envs(gymnasium_robotics)
+    rl_zoo3.ALGOS.update(ZOO_ALGORITHMS)
+    HYPERPARAMS_SAMPLER.update(SAMPLERS)
+    HYPERPARAMS_CONVERTER.update({name: keep_params for name in SAMPLERS})  # type: ignore[misc]
+
+
+def _with_default_conf_file(argv: list[str]) -> list[str]:
+    """Point ``train`` at our hyperparameter file of ``--algo`` unless the user chose one."""
+    if not argv or argv[0] != "train" or any(flag in argv for flag in ("-conf", "--conf-file")):
+        return argv
+    for flag in ("--algo", "-a"):
+        if flag in argv and argv.index(flag) + 1 < len(argv):
+            ours = hyperparams_dir() / f"{argv[argv.index(flag) + 1]}.yml"
+            if ours.exists():
+                return [*argv, "--conf-file", str(ours)]
+    return argv
+
+
+def main() -> None:
+    """``sb3-dipper-zoo {train,enjoy,plot_train,plot_from_file,all_plots} ...``: rl-zoo3's CLI with our algorithms."""
+    register()
+    from rl_zoo3.cli import main as zoo_main
+
+    sys.argv = [sys.argv[0], *_with_default_conf_file(sys.argv[1:])]
+    zoo_main()
+
+
+if __name__ == "__main__":
+    main()
