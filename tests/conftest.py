@@ -8,18 +8,30 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_dipper
-from sb3_dipper import DIPPER, HIER
+from sb3_dipper import DIPPER, HIER, PIPER, SAGA
 
 # One thread: tests run tiny networks, where more threads only add overhead and timing noise.
 th.set_num_threads(1)
 
-HIERARCHICAL_ALGORITHMS = [DIPPER, HIER]
+HIERARCHICAL_ALGORITHMS = [DIPPER, HIER, PIPER, SAGA]
 
 # Tiny budgets: 20-step episodes of four 5-step options, small networks and buffers.
 SHORT_EPISODES = {"max_episode_steps": 20}
 TINY_KWARGS = {
     DIPPER: dict(n_preference_pairs=200, pairs_per_batch=8, trajectory_buffer_size=50, policy_kwargs=dict(net_arch=[16])),
     HIER: dict(high_batch_size=16, high_buffer_size=1000, policy_kwargs=dict(net_arch=[16])),
+    PIPER: dict(
+        high_batch_size=16,
+        high_buffer_size=1000,
+        policy_kwargs=dict(net_arch=[16]),
+        n_preference_pairs=200,
+        reward_batch_size=8,
+        trajectory_buffer_size=50,
+        reward_model_kwargs=dict(net_arch=[16]),
+    ),
+    SAGA: dict(
+        high_batch_size=16, high_buffer_size=1000, policy_kwargs=dict(net_arch=[16]), discriminator_kwargs=dict(net_arch=[16])
+    ),
 }
 
 

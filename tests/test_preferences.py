@@ -8,9 +8,13 @@ from sb3_dipper.common.preferences import (
     PreferenceDataset,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    MAX_NEW_PAIRS_PER_ROUND,
     labels_from_scores,
+    load_preference_data,
+    pairs_due,
     relabel_hindsight_actions,
     sample_trajectory_pairs,
+    save_preference_data,
     truncate_at_first_arrival,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
@@ -133,6 +137,32 @@ def test_dataset_respects_the_label_budget_and_round_trips_through_npz(buffer, t
     np.testing.assert_array_equal(original.labels, restored.labels)
     np.testing.assert_array_equal(original.mask, restored.mask)
     np.testing.assert_allclose(original.observations["desired_goal"], restored.observations["desired_goal"])
+
+
+def test_labels_are_due_in_step_with_training_and_capped_per_round(buffer):
+    dataset = PreferenceDataset(capacity=1000)
+    assert pairs_due(dataset, 1000, num_timesteps=0, total_timesteps=100) == 1
+    assert pairs_due(dataset, 1000, num_timesteps=10, total_timesteps=100) == 100
+    assert pairs_due(dataset, 1000, num_timesteps=100, total_timesteps=100) == MAX_NEW_PAIRS_PER_ROUND
+    pairs = pairs_of(buffer, [0, 1], [1, 2])
+    pairs.labels = PrimitiveInTheLoopLabeler(goal_reached).label(pairs)
+    dataset.add(pairs)
+    assert pairs_due(dataset, 1000, num_timesteps=10, total_timesteps=100) == 98
+    full = PreferenceDataset(capacity=2)
+    full.add(pairs)
+    assert pairs_due(full, 2, num_timesteps=100, total_timesteps=100) == 0
+
+
+def test_checkpointed_trajectories_and_pairs_are_restored(buffer, tmp_path):
+    dataset = PreferenceDataset(capacity=10)
+    pairs = pairs_of(buffer, [0, 1], [1, 2])
+    pairs.labels = PrimitiveInTheLoopLabeler(goal_reached).label(pairs)
+    dataset.add(pairs)
+    save_preference_data(tmp_path / "high.npz", buffer, dataset)
+    restored_buffer = TrajectoryBuffer(capacity=10, max_length=3, observation_space=OBS_SPACE, action_dim=2)
+    restored = load_preference_data(tmp_path / "high.npz", restored_buffer, label_budget=10)
+    assert len(restored) == 2 and restored.capacity == 10 and len(restored_buffer) == len(buffer)
+    np.testing.assert_array_equal(restored.all_pairs().labels, dataset.all_pairs().labels)
 
 
 def test_unlabelled_pairs_are_refused(buffer):

@@ -24,6 +24,9 @@ import numpy as np
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 
+# Label at most this many new pairs per training round, so labelling never stalls a round.
+MAX_NEW_PAIRS_PER_ROUND = 256
+
 DictObs = dict[str, np.ndarray]
 GoalReachedFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -249,6 +252,37 @@ class PreferenceDataset:
         dataset = cls(capacity or max(stored_capacity, len(pairs)))
         dataset.add(pairs)
         return dataset
+
+
+def pairs_due(dataset: PreferenceDataset, label_budget: int, num_timesteps: int, total_timesteps: int) -> int:
+    """How many new pairs to label now, so the dataset grows in step with training and reaches the budget at the end."""
+    progress = min(1.0, num_timesteps / max(total_timesteps, 1))
+    wanted = max(1, int(label_budget * progress)) - len(dataset)
+    return max(0, min(wanted, MAX_NEW_PAIRS_PER_ROUND, dataset.remaining))
+
+
+def flat_pair_observations(pairs: TrajectoryPairs) -> dict[str, np.ndarray]:
+    """Every step of both trajectories of every pair as one batch: ``(2, B, T, ...)`` -> ``(2 B T, ...)``."""
+    return {key: value.reshape(-1, *value.shape[3:]) for key, value in pairs.observations.items()}
+
+
+def save_preference_data(path: str | Path, trajectory_buffer: TrajectoryBuffer, dataset: PreferenceDataset) -> None:
+    """The stored trajectories and labelled pairs of a checkpoint, as one npz file (read back without pickle)."""
+    arrays = {f"trajectories/{key}": value for key, value in trajectory_buffer.state_dict().items()}
+    arrays.update({f"preferences/{key}": value for key, value in dataset.to_arrays().items()})
+    np.savez_compressed(path, **arrays)  # type: ignore[arg-type]
+
+
+def load_preference_data(path: str | Path, trajectory_buffer: TrajectoryBuffer, label_budget: int) -> PreferenceDataset:
+    """Restore what :func:`save_preference_data` wrote: fills ``trajectory_buffer`` and returns the labelled pairs."""
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {key: data[key] for key in data.files}
+    trajectory_buffer.load_state_dict(_with_prefix(arrays, "trajectories/"))
+    return PreferenceDataset.from_arrays(_with_prefix(arrays, "preferences/"), label_budget, f"the checkpoint {path}")
+
+
+def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    return {key.removeprefix(prefix): value for key, value in arrays.items() if key.startswith(prefix)}
 
 
 def _allocate_like(pairs: TrajectoryPairs, capacity: int) -> TrajectoryPairs:

@@ -26,7 +26,11 @@ from sb3_dipper.common.preferences import (
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    flat_pair_observations,
+    load_preference_data,
+    pairs_due,
     sample_trajectory_pairs,
+    save_preference_data,
     truncate_at_first_arrival,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
@@ -38,8 +42,6 @@ SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
 PLANNING_MODES = ("off", "subgoal", "waypoint")
-# Label at most this many new pairs per training round, so labelling never stalls a round.
-MAX_NEW_PAIRS_PER_ROUND = 256
 # Rebuild the planning graph after this many new trajectories (a rebuild takes milliseconds).
 GRAPH_REBUILD_TRAJECTORIES = 4
 
@@ -390,10 +392,8 @@ class DIPPER(HierarchicalAlgorithm):
     def _label_new_pairs(self) -> None:
         """Label new pairs so the dataset grows in step with training, up to the label budget."""
         assert self.subgoal_space is not None and self._labeler is not None
-        progress = min(1.0, self.num_timesteps / max(self._total_timesteps, 1))
-        wanted = max(1, int(self.n_preference_pairs * progress)) - len(self.preferences)
-        n_new = min(wanted, MAX_NEW_PAIRS_PER_ROUND, self.preferences.remaining)
-        if n_new <= 0 or len(self.trajectory_buffer) < 2:
+        n_new = pairs_due(self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps)
+        if n_new == 0 or len(self.trajectory_buffer) < 2:
             return
         pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
         if self.truncate_at_goal:
@@ -406,7 +406,7 @@ class DIPPER(HierarchicalAlgorithm):
 
     def _pair_tensors(self, pairs: TrajectoryPairs) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, th.Tensor]:
         """Flattened (normalised) observations of both trajectories, their actions, mask and labels as tensors."""
-        flat_obs = {key: value.reshape(-1, *value.shape[3:]) for key, value in pairs.observations.items()}
+        flat_obs = flat_pair_observations(pairs)
         if self._vec_normalize_env is not None:
             flat_obs = self._vec_normalize_env.normalize_obs(flat_obs)  # type: ignore[assignment]
         observations = obs_as_tensor(flat_obs, self.device)  # type: ignore[arg-type]
@@ -418,7 +418,7 @@ class DIPPER(HierarchicalAlgorithm):
     def _pair_low_obs(self, pairs: TrajectoryPairs, actions: np.ndarray) -> dict[str, th.Tensor]:
         """Lower-level observations (s_t, g_t) of every step of both trajectories, g_t the subgoal of ``actions``."""
         assert self.subgoal_space is not None
-        flat_obs = {key: value.reshape(-1, *value.shape[3:]) for key, value in pairs.observations.items()}
+        flat_obs = flat_pair_observations(pairs)
         subgoals = self.subgoal_space.to_world(actions.reshape(-1, actions.shape[-1]))
         return self.low_level.tensor_obs(low_level_observation(flat_obs, subgoals, self.subgoal_space))
 
@@ -469,18 +469,9 @@ class DIPPER(HierarchicalAlgorithm):
 
     def _save_high_level_data(self, path: str) -> None:
         """Trajectories and labelled pairs, as npz (read back without pickle)."""
-        arrays = {f"trajectories/{key}": value for key, value in self.trajectory_buffer.state_dict().items()}
-        arrays.update({f"preferences/{key}": value for key, value in self.preferences.to_arrays().items()})
-        np.savez_compressed(sibling_path(path, ".high.npz"), **arrays)  # type: ignore[arg-type]
+        save_preference_data(sibling_path(path, ".high.npz"), self.trajectory_buffer, self.preferences)
 
     def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
-        with np.load(sibling_path(path, ".high.npz"), allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-        self.trajectory_buffer.load_state_dict(_with_prefix(arrays, "trajectories/"))
-        self.preferences = PreferenceDataset.from_arrays(
-            _with_prefix(arrays, "preferences/"), self.n_preference_pairs, "the replay-buffer checkpoint"
+        self.preferences = load_preference_data(
+            sibling_path(path, ".high.npz"), self.trajectory_buffer, self.n_preference_pairs
         )
-
-
-def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
-    return {key.removeprefix(prefix): value for key, value in arrays.items() if key.startswith(prefix)}
