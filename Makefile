@@ -29,7 +29,7 @@ test-slow: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check sb3_dipper tests zoo_scripts setup.py
-	$(PY) -m mypy sb3_dipper
+	$(PY) -m mypy sb3_dipper zoo_scripts
 
 format: $(STAMP)
 	$(PY) -m ruff check --fix sb3_dipper tests zoo_scripts setup.py

@@ -15,14 +15,18 @@ For algorithms and envs this package has hyperparameters for, ``train`` reads ``
 from __future__ import annotations
 
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import optuna
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_dipper.dipper import DIPPER
 from sb3_dipper.hier import HIER
+from sb3_dipper.piper import PIPER
+from sb3_dipper.saga import SAGA
 
 # Zoo names: the same class can appear under several names so that comparison plots show each as its own line.
 ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
@@ -30,6 +34,8 @@ ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "dipper_paper": DIPPER,
     "dipper_nov": DIPPER,
     "hier": HIER,
+    "piper": PIPER,
+    "saga": SAGA,
 }
 
 
@@ -66,13 +72,32 @@ def sample_hier_params(trial: optuna.Trial, n_actions: int, n_envs: int, additio
     }
 
 
+def sample_piper_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """HIER's search space plus PIPER's reward model and the weight of the lower-value term in its labels."""
+    return {
+        **sample_hier_params(trial, n_actions, n_envs, additional_args),
+        "reward_learning_rate": trial.suggest_float("reward_learning_rate", 1e-4, 3e-3, log=True),
+        "reward_batch_size": trial.suggest_categorical("reward_batch_size", [25, 50, 100]),
+        "value_reg_coef": trial.suggest_categorical("value_reg_coef", [0.0, 1e-6, 1e-3, 0.1]),
+    }
+
+
+def sample_saga_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """HIER's search space plus the weight of SAGA's adversarial term and its discriminator's learning rate."""
+    return {
+        **sample_hier_params(trial, n_actions, n_envs, additional_args),
+        "adversarial_coef": trial.suggest_float("adversarial_coef", 1e-4, 1e-1, log=True),
+        "discriminator_learning_rate": trial.suggest_float("discriminator_learning_rate", 1e-4, 1e-3, log=True),
+    }
+
+
 def keep_params(params: dict[str, Any]) -> dict[str, Any]:
     """Our samplers return constructor kwargs directly, so a stored trial converts to itself."""
     return dict(params)
 
 
 SAMPLERS = {"dipper": sample_dipper_params, "dipper_paper": sample_dipper_params, "dipper_nov": sample_dipper_params}
-SAMPLERS["hier"] = sample_hier_params
+SAMPLERS.update(hier=sample_hier_params, piper=sample_piper_params, saga=sample_saga_params)
 
 
 def register() -> None:
@@ -89,15 +114,31 @@ def register() -> None:
 
 
 def _with_default_conf_file(argv: list[str]) -> list[str]:
-    """Point ``train`` at our hyperparameter file of ``--algo`` unless the user chose one."""
+    """Point ``train`` at our hyperparameter file of ``--algo`` unless the user chose one.
+
+    rl-zoo3 only reads the entry named after the env id; for an env our file has no entry for, its ``default`` entry is
+    written under that id to a temporary file, so any goal env trains with the paper-scale profile.
+    """
     if not argv or argv[0] != "train" or any(flag in argv for flag in ("-conf", "--conf-file")):
         return argv
-    for flag in ("--algo", "-a"):
+    algo, env_id = _flag_value(argv, "--algo", "-a"), _flag_value(argv, "--env")
+    ours = hyperparams_dir() / f"{algo}.yml"
+    if algo is None or not ours.exists():
+        return argv
+    with open(ours) as file:
+        entries = yaml.safe_load(file)
+    if env_id is None or env_id in entries or "default" not in entries:
+        return [*argv, "--conf-file", str(ours)]
+    with tempfile.NamedTemporaryFile("w", prefix=f"{algo}-", suffix=".yml", delete=False) as conf_file:
+        yaml.safe_dump({env_id: entries["default"]}, conf_file)
+    return [*argv, "--conf-file", conf_file.name]
+
+
+def _flag_value(argv: list[str], *flags: str) -> str | None:
+    for flag in flags:
         if flag in argv and argv.index(flag) + 1 < len(argv):
-            ours = hyperparams_dir() / f"{argv[argv.index(flag) + 1]}.yml"
-            if ours.exists():
-                return [*argv, "--conf-file", str(ours)]
-    return argv
+            return argv[argv.index(flag) + 1]
+    return None
 
 
 def main() -> None:

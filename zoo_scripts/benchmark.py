@@ -179,10 +179,12 @@ def learning_run(
     model.learn(budget, callback=callback)
     if not callback.timesteps or callback.timesteps[-1] < model.num_timesteps:
         callback.evaluate()
-    result = dict(algo=algo, variant=variant, overrides=overrides, env=env_id, seed=seed, steps=model.num_timesteps)
-    result["seconds"] = time.time() - start
+    seconds = time.time() - start
+    result = dict(
+        algo=algo, variant=variant, overrides=overrides, env=env_id, seed=seed, steps=model.num_timesteps, seconds=seconds
+    )
     (directory / "result.json").write_text(json.dumps(result))
-    return f"{algo} seed {seed}: {result['seconds'] / 60:.1f} min, final success {np.mean(callback.successes[-1]):.2f}"
+    return f"{algo} seed {seed}: {seconds / 60:.1f} min, final success {np.mean(callback.successes[-1]):.2f}"
 
 
 def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Any]]:

@@ -21,11 +21,11 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
-from sb3_dipper import DIPPER, HIER
+from sb3_dipper.zoo import ZOO_ALGORITHMS
 
 HYPERPARAMS_DIR = Path(__file__).resolve().parent.parent / "hyperparams"
 
-ALGORITHMS: dict[str, type[BaseAlgorithm]] = {"dipper": DIPPER, "dipper_paper": DIPPER, "hier": HIER, "sac": SAC, "tqc": TQC}
+ALGORITHMS: dict[str, type[BaseAlgorithm]] = {**ZOO_ALGORITHMS, "sac": SAC, "tqc": TQC}
 
 # The zoo's own keys: they configure the env and the run, not the algorithm's constructor.
 ZOO_KEYS = ("n_timesteps", "n_envs", "normalize", "env_kwargs", "monitor_kwargs", "env_wrapper", "callback", "frame_stack")

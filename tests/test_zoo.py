@@ -1,0 +1,121 @@
+"""The RL-Zoo runner: our YAML files, ``sb3-dipper-zoo train`` / ``enjoy`` in subprocesses, and clear errors."""
+
+import inspect
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from sb3_dipper.zoo import ZOO_ALGORITHMS, _with_default_conf_file, hyperparams_dir
+from zoo_scripts.configs import ALGORITHMS, ZOO_KEYS, load_entry
+
+ENV_ID = "PointMazeFourRooms-v0"
+PAPER_TASKS = [
+    "FetchFourRoomMaze-v0",
+    "FetchPickAndPlace-v4",
+    "FetchPickAndPlaceFixed-v0",
+    "FetchPush-v4",
+    "FetchPushFixed-v0",
+    "FrankaKitchenMicrowaveBurner-v0",
+]
+YAML_FILES = sorted(hyperparams_dir().glob("*.yml"))
+
+# Test-sized overrides per algorithm, passed through rl-zoo3's own `-params` flag.
+TINY_HIERARCHICAL = [
+    "n_envs:1",
+    "option_steps:5",
+    "learning_starts:50",
+    "batch_size:16",
+    "buffer_size:2000",
+    "low_policy_kwargs:dict(net_arch=[16])",
+    "policy_kwargs:dict(net_arch=[16])",
+]
+TINY_PARAMS = {
+    "dipper": [*TINY_HIERARCHICAL, "n_preference_pairs:200", "pairs_per_batch:8", "trajectory_buffer_size:50"],
+    "dipper_paper": [*TINY_HIERARCHICAL, "n_preference_pairs:200", "pairs_per_batch:8", "trajectory_buffer_size:50"],
+    "dipper_nov": [*TINY_HIERARCHICAL, "n_preference_pairs:200", "pairs_per_batch:8", "trajectory_buffer_size:50"],
+    "hier": [*TINY_HIERARCHICAL, "high_batch_size:16", "high_buffer_size:1000"],
+    "piper": [
+        *TINY_HIERARCHICAL,
+        "high_batch_size:16",
+        "high_buffer_size:1000",
+        "n_preference_pairs:200",
+        "reward_batch_size:8",
+    ],
+    "saga": [*TINY_HIERARCHICAL, "high_batch_size:16", "high_buffer_size:1000"],
+    "sac": ["n_envs:1", "learning_starts:50", "batch_size:16", "buffer_size:2000", "policy_kwargs:dict(net_arch=[16])"],
+}
+
+
+def zoo(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_dipper.zoo", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+@pytest.mark.parametrize("path", YAML_FILES, ids=lambda path: path.stem)
+def test_every_yaml_entry_names_only_constructor_keywords(path):
+    algorithm = ALGORITHMS[path.stem]
+    accepted = set(inspect.signature(algorithm.__init__).parameters)
+    entries = yaml.safe_load(path.read_text())
+    for env_id in entries:
+        entry = load_entry(path.stem, env_id)
+        unknown = set(entry) - accepted - set(ZOO_KEYS)
+        assert not unknown, f"{path.name}[{env_id}] has keys {unknown} that {algorithm.__name__} does not take"
+        assert entry["monitor_kwargs"] == dict(info_keywords=("is_success",))
+
+
+@pytest.mark.parametrize("path", YAML_FILES, ids=lambda path: path.stem)
+def test_every_algorithm_has_the_fast_env_the_paper_tasks_and_a_default(path):
+    entries = yaml.safe_load(path.read_text())
+    assert {ENV_ID, "default", *PAPER_TASKS} <= set(entries)
+    for task in PAPER_TASKS:
+        assert entries[task]["batch_size"] == 1024 and entries[task]["policy_kwargs"]["net_arch"] == [512, 512, 512]
+
+
+def test_every_zoo_algorithm_has_a_hyperparameter_file():
+    assert set(ZOO_ALGORITHMS) <= {path.stem for path in YAML_FILES}
+
+
+def test_an_env_without_an_entry_trains_with_the_default_entry():
+    argv = _with_default_conf_file(["train", "--algo", "dipper", "--env", "FetchReach-v4"])
+    conf_file = Path(argv[argv.index("--conf-file") + 1])
+    assert yaml.safe_load(conf_file.read_text()) == {
+        "FetchReach-v4": yaml.safe_load((hyperparams_dir() / "dipper.yml").read_text())["default"]
+    }
+    conf_file.unlink()
+    assert _with_default_conf_file(["train", "--algo", "dipper", "--env", ENV_ID, "-conf", "mine.yml"])[-1] == "mine.yml"
+
+
+@pytest.mark.parametrize("algo", sorted(TINY_PARAMS))
+def test_train_then_enjoy_in_subprocesses(algo, tmp_path):
+    trained = zoo(
+        "train", "--algo", algo, "--env", ENV_ID, "-n", "300", "--seed", "0", "-f", "logs", "--eval-freq", "-1",
+        "--env-kwargs", "max_episode_steps:50", "-params", *TINY_PARAMS[algo], cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    run_dir = tmp_path / "logs" / algo / f"{ENV_ID}_1"
+    assert (run_dir / f"{ENV_ID}.zip").exists()
+
+    enjoyed = zoo(
+        "enjoy", "--algo", algo, "--env", ENV_ID, "-f", "logs", "--exp-id", "1", "-n", "120", "--no-render",
+        "--env-kwargs", "max_episode_steps:50", cwd=tmp_path,
+    )  # fmt: skip
+    assert enjoyed.returncode == 0, enjoyed.stderr[-3000:]
+    assert "Success rate:" in enjoyed.stdout
+
+
+def test_a_hyperparameter_typo_names_the_keyword(tmp_path):
+    result = zoo("train", "--algo", "dipper", "--env", ENV_ID, "-n", "10", "-f", "logs", "-params", "betta:0.1", cwd=tmp_path)
+    assert result.returncode != 0
+    assert "betta" in result.stderr
+
+
+def test_an_unknown_algorithm_is_refused(tmp_path):
+    result = zoo("train", "--algo", "dipperr", "--env", ENV_ID, "-n", "10", cwd=tmp_path)
+    assert result.returncode != 0
+    assert "dipperr" in result.stderr and "dipper" in result.stderr
