@@ -23,9 +23,13 @@ import optuna
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_dipper.dac import DAC
 from sb3_dipper.dipper import DIPPER
+from sb3_dipper.dpo_flat import DPOFlat
+from sb3_dipper.hac import HAC
 from sb3_dipper.hier import HIER
 from sb3_dipper.piper import PIPER
+from sb3_dipper.raps import RAPS
 from sb3_dipper.saga import SAGA
 
 # Zoo names: the same class can appear under several names so that comparison plots show each as its own line.
@@ -36,6 +40,10 @@ ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "hier": HIER,
     "piper": PIPER,
     "saga": SAGA,
+    "hac": HAC,
+    "raps": RAPS,
+    "dac": DAC,
+    "dpo_flat": DPOFlat,
 }
 
 
@@ -91,6 +99,18 @@ def sample_saga_params(trial: optuna.Trial, n_actions: int, n_envs: int, additio
     }
 
 
+def sample_dpo_flat_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """Optuna search space of DPO-FLAT: its DPO loss, segment length and batch of pairs."""
+    return {
+        "learning_rate": trial.suggest_float("learning_rate", 1e-4, 3e-3, log=True),
+        "beta": trial.suggest_float("beta", 0.01, 1.0, log=True),
+        "nll_coef": trial.suggest_categorical("nll_coef", [0.0, 0.5, 1.0]),
+        "segment_length": trial.suggest_categorical("segment_length", [10, 15, 20, 25]),
+        "pairs_per_batch": trial.suggest_categorical("pairs_per_batch", [32, 50, 64, 128]),
+        "random_action_prob": trial.suggest_categorical("random_action_prob", [0.0, 0.1, 0.2, 0.3]),
+    }
+
+
 def keep_params(params: dict[str, Any]) -> dict[str, Any]:
     """Our samplers return constructor kwargs directly, so a stored trial converts to itself."""
     return dict(params)
@@ -98,6 +118,8 @@ def keep_params(params: dict[str, Any]) -> dict[str, Any]:
 
 SAMPLERS = {"dipper": sample_dipper_params, "dipper_paper": sample_dipper_params, "dipper_nov": sample_dipper_params}
 SAMPLERS.update(hier=sample_hier_params, piper=sample_piper_params, saga=sample_saga_params)
+# HAC and RAPS are tuned over HIER's space: the higher SAC and the option length.
+SAMPLERS.update(hac=sample_hier_params, raps=sample_hier_params, dpo_flat=sample_dpo_flat_params)
 
 
 def register() -> None:
@@ -111,6 +133,9 @@ def register() -> None:
     rl_zoo3.ALGOS.update(ZOO_ALGORITHMS)
     HYPERPARAMS_SAMPLER.update(SAMPLERS)
     HYPERPARAMS_CONVERTER.update({name: keep_params for name in SAMPLERS})  # type: ignore[misc]
+    # DAC is SAC with a learned reward: the zoo's own SAC search space and its converter apply unchanged.
+    HYPERPARAMS_SAMPLER["dac"] = HYPERPARAMS_SAMPLER["sac"]
+    HYPERPARAMS_CONVERTER["dac"] = HYPERPARAMS_CONVERTER["sac"]
 
 
 def _with_default_conf_file(argv: list[str]) -> list[str]:

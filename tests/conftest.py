@@ -8,12 +8,13 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_dipper
-from sb3_dipper import DIPPER, HIER, PIPER, SAGA
+from sb3_dipper import DIPPER, HAC, HIER, PIPER, SAGA
 
 # One thread: tests run tiny networks, where more threads only add overhead and timing noise.
 th.set_num_threads(1)
 
-HIERARCHICAL_ALGORITHMS = [DIPPER, HIER, PIPER, SAGA]
+# RAPS has no learned lower level; tests/test_raps.py covers its runs, saving and determinism.
+HIERARCHICAL_ALGORITHMS = [DIPPER, HIER, PIPER, SAGA, HAC]
 
 # Tiny budgets: 20-step episodes of four 5-step options, small networks and buffers.
 SHORT_EPISODES = {"max_episode_steps": 20}
@@ -29,6 +30,7 @@ TINY_KWARGS = {
         trajectory_buffer_size=50,
         reward_model_kwargs=dict(net_arch=[16]),
     ),
+    HAC: dict(high_batch_size=16, high_buffer_size=1000, policy_kwargs=dict(net_arch=[16])),
     SAGA: dict(
         high_batch_size=16, high_buffer_size=1000, policy_kwargs=dict(net_arch=[16]), discriminator_kwargs=dict(net_arch=[16])
     ),
