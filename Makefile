@@ -4,6 +4,8 @@ VENV ?= .venv
 # The CPU wheel of torch 2.13.0 is on these machines; a bare `torch` would pull a multi-GB CUDA build.
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
+# Tests are single-threaded; one pytest worker per core.
+TEST_WORKERS ?= 2
 STAMP := $(VENV)/.sb3-dipper-installed
 export MUJOCO_GL ?= egl
 
@@ -22,7 +24,7 @@ demo: $(STAMP)
 	$(PY) zoo_scripts/demo.py --output-dir demo_output
 
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=15
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --durations=15
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow --durations=15

@@ -39,7 +39,18 @@ setup(
         "plots": ["matplotlib>=3.7", "pandas>=2.2", "rliable>=1.2"],
         # Reading Minari dataset directories as demonstrations.
         "minari": ["minari[hdf5]>=0.5"],
-        "tests": ["pytest>=8", "pytest-timeout", "ruff", "mypy", "types-PyYAML", "minari[hdf5]>=0.5"],
+        # zoo_scripts/benchmark.py --ray-address: learning runs as tasks on a Ray cluster.
+        "cluster": ["ray>=2.9"],
+        "tests": [
+            "pytest>=8",
+            "pytest-timeout",
+            "pytest-xdist",
+            "ruff",
+            "mypy",
+            "types-PyYAML",
+            "minari[hdf5]>=0.5",
+            "ray>=2.9",
+        ],
     },
     entry_points={
         "console_scripts": ["sb3-dipper-demos = sb3_dipper.envs.demos:main", "sb3-dipper-zoo = sb3_dipper.zoo:main"]

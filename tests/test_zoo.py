@@ -6,10 +6,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import optuna
 import pytest
 import yaml
+from optuna.trial import TrialState
 
-from sb3_dipper.zoo import ZOO_ALGORITHMS, _with_default_conf_file, hyperparams_dir
+from sb3_dipper.zoo import SAMPLERS, ZOO_ALGORITHMS, _with_default_conf_file, hyperparams_dir
 from zoo_scripts.configs import ALGORITHMS, ZOO_KEYS, load_entry
 
 ENV_ID = "PointMazeFourRooms-v0"
@@ -124,3 +126,63 @@ def test_an_unknown_algorithm_is_refused(tmp_path):
     result = zoo("train", "--algo", "dipperr", "--env", ENV_ID, "-n", "10", cwd=tmp_path)
     assert result.returncode != 0
     assert "dipperr" in result.stderr and "dipper" in result.stderr
+
+
+def optimize_args(algo: str, storage: str, log_folder: str, n_trials: int = 1) -> list[str]:
+    """One tuning worker: random sampler, no pruning, one evaluation of 2 episodes after 300 steps per trial."""
+    return [
+        "train", "--algo", algo, "--env", ENV_ID, "-f", log_folder, "-optimize", "--storage", storage, "--study-name", "s",
+        "--n-trials", str(n_trials), "--n-jobs", "1", "-n", "300", "--eval-episodes", "2", "--n-evaluations", "1",
+        "--sampler", "random", "--pruner", "none", "--no-optim-plots", "--env-kwargs", "max_episode_steps:50",
+        "-params", *TINY_PARAMS[algo],
+    ]  # fmt: skip
+
+
+def test_two_tuning_workers_share_a_journal_file_study(tmp_path):
+    env = {**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    # Each worker has its own log folder: started together, they would otherwise pick the same run folder.
+    command = [sys.executable, "-m", "sb3_dipper.zoo"]
+    storage_path = str(tmp_path / "study.log")
+    workers = [
+        subprocess.Popen([*command, *optimize_args("dipper", storage_path, f"worker{i}")], cwd=tmp_path, env=env, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        for i in range(2)
+    ]  # fmt: skip
+    outputs = [worker.communicate(timeout=600) for worker in workers]
+    for worker, (_, stderr) in zip(workers, outputs, strict=True):
+        assert worker.returncode == 0, stderr[-3000:]
+
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage_path))
+    study = optuna.load_study(study_name="s", storage=storage)
+    assert [trial.state for trial in study.trials] == [TrialState.COMPLETE] * 2
+    # Optuna numbers trials across the whole study: each worker ran one of the two.
+    finished = [{number for number in (0, 1) if f"Trial {number} finished" in stderr} for _, stderr in outputs]
+    assert sorted(map(sorted, finished)) == [[0], [1]]
+    assert {"beta", "option_steps"} <= set(study.trials[0].params)  # DIPPER's own search space, from register()
+
+
+def test_tuning_with_an_sqlite_study_then_training_with_a_trial(tmp_path):
+    tuned = zoo(*optimize_args("hier", f"sqlite:///{tmp_path / 'study.db'}", "logs", n_trials=2), cwd=tmp_path)
+    assert tuned.returncode == 0, tuned.stderr[-3000:]
+    study = optuna.load_study(study_name="s", storage=f"sqlite:///{tmp_path / 'study.db'}")
+    assert [trial.state for trial in study.trials] == [TrialState.COMPLETE] * 2
+    assert list((tmp_path / "logs" / "hier").glob("report_*.csv"))
+
+    # rl-zoo3 loads a stored trial's parameters only for a truthy --trial-id, so trial 0 cannot be chosen this way.
+    trained = zoo(
+        "train", "--algo", "hier", "--env", ENV_ID, "-n", "100", "-f", "logs", "--eval-freq", "-1",
+        "--storage", f"sqlite:///{tmp_path / 'study.db'}", "--study-name", "s", "--trial-id", "1",
+        "--env-kwargs", "max_episode_steps:50", "-params", *TINY_PARAMS["hier"], cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    config = yaml.unsafe_load((tmp_path / "logs" / "hier" / f"{ENV_ID}_2" / ENV_ID / "config.yml").read_text())
+    assert dict(config)["learning_rate"] == study.trials[1].params["learning_rate"]
+
+
+@pytest.mark.parametrize("algo", sorted(SAMPLERS))
+def test_every_sampler_suggests_only_constructor_keywords(algo):
+    accepted = set(inspect.signature(ZOO_ALGORITHMS[algo].__init__).parameters)
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(20):
+        params = SAMPLERS[algo](study.ask(), 2, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
+        assert set(params) <= accepted, f"{algo}'s sampler suggests {set(params) - accepted}"

@@ -3,11 +3,36 @@
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
     python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set planning=off --name ablations
+    python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick            # every algorithm, <= 1 h
+    python zoo_scripts/benchmark.py learning --protocol paper --ray-address HEAD:6379     # paper tasks on a cluster
+    python zoo_scripts/benchmark.py learning --envs FetchPush-v4 FetchPickAndPlace-v4 --algos dipper sac --seeds 0 1
 
-``learning`` runs every (algorithm, seed) pair from its ``hyperparams/<algo>.yml`` entry in a process pool, evaluates
-the deterministic success rate every ``--eval-freq`` primitive steps (``evaluations.npz`` per run), skips runs that
-already finished (rerun after a crash to resume), and aggregates: a CSV, a markdown table and a success-curve figure
-(mean and standard deviation over seeds).
+``learning`` runs every (algorithm, task, seed) triple from the task's entry of ``hyperparams/<algo>.yml``, evaluates
+the deterministic success rate every ``--eval-freq`` primitive steps (``evaluations.npz`` per run, in
+``<out>/<algo>/<env>/seed_<n>/``), skips runs that already finished (their ``result.json`` exists: rerun the same
+command after a crash to resume), and aggregates: a CSV with an env column, one markdown table per task (final
+success mean +- std, steps to 50 %, and for hierarchical algorithms the final subgoal distance and lower-level value)
+and one figure with a panel per task (mean and standard deviation over seeds, a line per algorithm).
+
+Runs execute in a local process pool of ``--workers`` processes, or with ``--ray-address`` as Ray tasks of one CPU
+each on a running cluster (``ray start --head`` on one machine, ``ray start --address HEAD:6379`` on the others).
+The Ray workers import this checkout and write into ``--out`` themselves, so every node must see the checkout, its
+virtualenv and ``--out`` at the same paths (a shared filesystem) and run ``ray`` from that virtualenv
+(``pip install -e ".[cluster]"``).
+
+Protocols preset algorithms, tasks, seeds and budgets; flags given explicitly override them:
+
+* ``quick``: ``PointMazeFourRooms-v0``, every algorithm but TQC, seeds 0 1 2, 40,000 primitive steps per run,
+  evaluations of 20 episodes every 8,000 steps: under an hour on two cores. Measured here (the PointMaze entries, one
+  torch thread, 2,400 steps after ``learning_starts``, while another two-process benchmark shared the two cores), in
+  ms per primitive step: dipper 4.8, dipper_paper 3.3, dipper_nov 3.2, hier 3.4, hac 5.8, raps 0.9, piper 3.8, saga
+  5.1, dac 17.5, dpo_flat 10.5, sac 5.5 (sum 63.6); a 20-episode evaluation took 2.6-9.8 s (sum 52 s). Alone on a
+  core a run is faster: DIPPER's 2e5-step runs took 2.4 ms per step against 4.8 measured, so take 0.6 of the
+  measurement. 3 seeds x (63.6 ms x 40,000 + 5 x 52 s) x 0.6 / 2 workers = 2,520 s = 42 min, plus at most one DAC
+  run (40,000 x 17.5 ms x 0.6 = 7 min) left alone at the end: under 50 minutes.
+* ``paper``: the paper's four tasks, the paper's algorithms (and this package's DIPPER), seeds 0-4, the YAML budgets
+  (6.3e5 to 1.35e6 primitive steps with 3x512 networks and batches of 1024, not timed here: 220 runs for a big
+  machine or a Ray cluster), evaluations of 50 episodes every 25,000 steps.
 """
 
 from __future__ import annotations
@@ -15,13 +40,16 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import platform
 import random
 import statistics
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +58,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.utils import safe_mean
+
+from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from configs import episode_successes, load_entry, make_env, make_model, torch_threads
@@ -37,7 +68,40 @@ from configs import episode_successes, load_entry, make_env, make_model, torch_t
 REPO = Path(__file__).resolve().parent.parent
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
 RESULTS_DIR = REPO / "docs" / "benchmarks"
-LABELS = {"dipper": "DIPPER", "dipper_paper": "DIPPER (paper)", "hier": "HIER", "sac": "SAC+HER", "tqc": "TQC+HER"}
+LABELS = {
+    "dipper": "DIPPER",
+    "dipper_paper": "DIPPER (paper)",
+    "dipper_nov": "DIPPER-No-V",
+    "hier": "HIER",
+    "hac": "HAC",
+    "raps": "RAPS",
+    "piper": "PIPER",
+    "saga": "SAGA",
+    "dac": "DAC",
+    "dpo_flat": "DPO-FLAT",
+    "sac": "SAC+HER",
+    "tqc": "TQC+HER",
+}
+POINT_MAZE = "PointMazeFourRooms-v0"
+PAPER_TASKS = ["FetchFourRoomMaze-v0", "FetchPickAndPlace-v4", "FetchPush-v4", "FrankaKitchenMicrowaveBurner-v0"]
+# The paper's comparison (its DIPPER, DIPPER-No-V and baselines, SAC+HER as FLAT) plus this package's DIPPER.
+PAPER_ALGORITHMS = ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "raps", "piper", "saga", "dac", "dpo_flat", "sac"]
+LEARNING_DEFAULTS: dict[str, Any] = dict(
+    envs=[POINT_MAZE], algos=["dipper", "hier", "sac"], seeds=[0, 1, 2], n_timesteps=None, eval_freq=20_000, eval_episodes=50
+)
+PROTOCOLS: dict[str, dict[str, Any]] = {
+    "quick": dict(
+        envs=[POINT_MAZE],
+        algos=PAPER_ALGORITHMS,
+        seeds=[0, 1, 2],
+        n_timesteps=40_000,
+        eval_freq=8_000,
+        eval_episodes=20,
+    ),
+    "paper": dict(envs=PAPER_TASKS, algos=PAPER_ALGORITHMS, seeds=[0, 1, 2, 3, 4], n_timesteps=None, eval_freq=25_000),
+}
+# Logged by the option layer of hierarchical algorithms (``rollout/<key>``); recorded at each evaluation.
+OPTION_METRICS = ("subgoal_distance", "low_value")
 
 
 # ------------------------------------------------------------------------------------------------------------- report
@@ -52,17 +116,17 @@ def machine() -> str:
     return f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, torch {th.__version__}, no GPU"
 
 
-def write_section(name: str, body: str, command: str) -> None:
-    """Replace (or append) the ``name`` section of BENCHMARKS.md, stamped with command, machine and date."""
+def write_section(name: str, body: str, command: str, path: Path = BENCHMARKS_MD) -> None:
+    """Replace (or append) the ``name`` section of ``path`` (BENCHMARKS.md), stamped with command, machine and date."""
     start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
     stamp = f"Command: `{command}`  \nMachine: {machine()}  \nDate: {datetime.date.today().isoformat()}\n\n"
     section = f"{start}\n{stamp}{body.strip()}\n{end}"
-    text = BENCHMARKS_MD.read_text() if BENCHMARKS_MD.exists() else "# Benchmarks\n"
+    text = path.read_text() if path.exists() else "# Benchmarks\n"
     if start in text and end in text:
         text = text[: text.index(start)] + section + text[text.index(end) + len(end) :]
     else:
         text = f"{text.rstrip()}\n\n{section}\n"
-    BENCHMARKS_MD.write_text(text)
+    path.write_text(text)
 
 
 # ------------------------------------------------------------------------------------------------------------- throughput
@@ -114,13 +178,19 @@ def run_throughput(args: argparse.Namespace) -> None:
 
 
 class PeriodicSuccess(BaseCallback):
-    """Deterministic success rate every ``eval_freq`` primitive steps, saved as ``evaluations.npz`` (EvalCallback keys)."""
+    """Deterministic success rate every ``eval_freq`` primitive steps, saved as ``evaluations.npz`` (EvalCallback keys).
+
+    For hierarchical models it also saves, per evaluation, the mean subgoal distance and lower-level value of the
+    last options: the values the model logs as ``rollout/subgoal_distance`` and ``rollout/low_value`` (NaN while
+    none were recorded, e.g. the lower value before ``learning_starts`` or for a scripted lower level).
+    """
 
     def __init__(self, eval_env, eval_freq: int, n_episodes: int, path: Path):
         super().__init__()
         self.eval_env, self.eval_freq, self.n_episodes, self.path = eval_env, eval_freq, n_episodes, path
         self.timesteps: list[int] = []
         self.successes: list[list[float]] = []
+        self.option_metrics: dict[str, list[float]] = {key: [] for key in OPTION_METRICS}
         self._next = eval_freq
 
     def _on_step(self) -> bool:
@@ -132,7 +202,13 @@ class PeriodicSuccess(BaseCallback):
     def evaluate(self) -> None:
         self.timesteps.append(self.num_timesteps)
         self.successes.append(episode_successes(self.model, self.eval_env, self.n_episodes))
-        np.savez(self.path, timesteps=np.array(self.timesteps), successes=np.array(self.successes))
+        arrays: dict[str, Any] = dict(timesteps=np.array(self.timesteps), successes=np.array(self.successes))
+        if isinstance(self.model, HierarchicalAlgorithm):
+            # The logger's values are cleared at every dump; these windows are what dump_logs averages.
+            for key, values in self.option_metrics.items():
+                values.append(float(safe_mean(self.model._option_metrics[key])))
+                arrays[key] = np.array(values)
+        np.savez(self.path, **arrays)
 
 
 def run_name(algo: str, variant: str | None) -> str:
@@ -167,7 +243,7 @@ def learning_run(
     variant: str | None = None,
     overrides: dict[str, Any] | None = None,
 ) -> str:
-    """One (algorithm, seed) run; writes evaluations.npz and, once finished, result.json."""
+    """One (algorithm, task, seed) run; writes evaluations.npz and, once finished, result.json."""
     th.set_num_threads(torch_threads())
     directory = run_directory(out, run_name(algo, variant), env_id, seed)
     directory.mkdir(parents=True, exist_ok=True)
@@ -184,90 +260,187 @@ def learning_run(
         algo=algo, variant=variant, overrides=overrides, env=env_id, seed=seed, steps=model.num_timesteps, seconds=seconds
     )
     (directory / "result.json").write_text(json.dumps(result))
-    return f"{algo} seed {seed}: {seconds / 60:.1f} min, final success {np.mean(callback.successes[-1]):.2f}"
+    return f"{algo} {env_id} seed {seed}: {seconds / 60:.1f} min, final success {np.mean(callback.successes[-1]):.2f}"
 
 
-def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Any]]:
-    """Markdown table (final success mean +- std, steps to 50 %) and per-algorithm curves."""
-    curves: dict[str, Any] = {}
-    rows, csv_lines = [], ["algo,seed,timesteps,success"]
+@dataclass
+class Curves:
+    """The evaluations of one algorithm on one task, truncated to the evaluations every seed has reached."""
+
+    seeds: list[int]
+    steps: np.ndarray  # (evaluations,) primitive steps
+    success: np.ndarray  # (seeds, evaluations) success rates
+    metrics: dict[str, np.ndarray]  # every OPTION_METRICS key, (seeds, evaluations), NaN where not recorded
+
+
+def load_curves(out: Path, algo: str, env_id: str, seeds: list[int]) -> Curves | None:
+    runs = {}
+    for seed in seeds:
+        path = run_directory(out, algo, env_id, seed) / "evaluations.npz"
+        if path.exists():
+            with np.load(path) as data:
+                runs[seed] = {key: data[key] for key in data.files}
+    if not runs:
+        return None
+    length = min(len(run["timesteps"]) for run in runs.values())
+    nan = np.full(length, np.nan)
+    return Curves(
+        seeds=list(runs),
+        steps=next(iter(runs.values()))["timesteps"][:length],
+        success=np.stack([run["successes"].mean(axis=1)[:length] for run in runs.values()]),
+        metrics={key: np.stack([run[key][:length] if key in run else nan for run in runs.values()]) for key in OPTION_METRICS},
+    )
+
+
+def final_mean(curves: Curves, key: str) -> str:
+    """Mean over seeds of a metric's last evaluation, or a dash where the algorithm does not record it."""
+    final = curves.metrics[key][:, -1]
+    return "-" if np.isnan(final).all() else f"{np.nanmean(final):.2f}"
+
+
+def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Curves], list[str]]:
+    """Markdown table of one task (final success mean +- std, steps to 50 %, option metrics), curves and CSV rows."""
+    curves: dict[str, Curves] = {}
+    rows, csv_rows = [], []
     for algo in algos:
-        per_seed = []
-        for seed in seeds:
-            path = run_directory(out, algo, env_id, seed) / "evaluations.npz"
-            if not path.exists():
-                continue
-            data = np.load(path)
-            success = data["successes"].mean(axis=1)
-            per_seed.append((data["timesteps"], success))
-            csv_lines += [f"{algo},{seed},{int(t)},{s:.4f}" for t, s in zip(data["timesteps"], success, strict=True)]
-        if not per_seed:
+        algo_curves = load_curves(out, algo, env_id, seeds)
+        if algo_curves is None:
             continue
-        length = min(len(steps) for steps, _ in per_seed)
-        steps = per_seed[0][0][:length]
-        matrix = np.stack([success[:length] for _, success in per_seed])
-        curves[algo] = (steps, matrix)
-        final = matrix[:, -1]
-        mean_curve = matrix.mean(axis=0)
-        reached = np.flatnonzero(mean_curve >= 0.5)
-        to_half = f"{int(steps[reached[0]]):,}" if reached.size else "not reached"
-        rows.append(f"| {label(algo)} | {len(per_seed)} | {final.mean():.2f} +- {final.std():.2f} | {to_half} |")
-    (out / f"{env_id}_summary.csv").write_text("\n".join(csv_lines) + "\n")
-    table = "| algorithm | seeds | final success (mean +- std) | steps to 50 % (mean curve) |\n|---|---|---|---|\n"
-    return table + "\n".join(rows), curves
+        curves[algo] = algo_curves
+        for index, seed in enumerate(algo_curves.seeds):
+            for step_index, step in enumerate(algo_curves.steps):
+                metrics = [algo_curves.metrics[key][index, step_index] for key in OPTION_METRICS]
+                values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
+                csv_rows.append(f"{env_id},{algo},{seed},{int(step)},{algo_curves.success[index, step_index]:.4f},{values}")
+        final = algo_curves.success[:, -1]
+        reached = np.flatnonzero(algo_curves.success.mean(axis=0) >= 0.5)
+        to_half = f"{int(algo_curves.steps[reached[0]]):,}" if reached.size else "not reached"
+        rows.append(
+            f"| {label(algo)} | {len(algo_curves.seeds)} | {final.mean():.2f} +- {final.std():.2f} | {to_half} | "
+            f"{final_mean(algo_curves, 'subgoal_distance')} | {final_mean(algo_curves, 'low_value')} |"
+        )
+    table = (
+        "| algorithm | seeds | final success (mean +- std) | steps to 50 % (mean curve) | final subgoal distance | "
+        "final lower value |\n|---|---|---|---|---|---|\n"
+    )
+    return table + "\n".join(rows), curves, csv_rows
 
 
-def plot_curves(curves: dict[str, Any], env_id: str, path: Path) -> None:
+def plot_curves(curves: dict[str, dict[str, Curves]], path: Path) -> dict[str, list[str]]:
+    """One panel per task, a line per algorithm (mean, band of one standard deviation); returns each panel's lines."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    for algo, (steps, matrix) in curves.items():
-        mean, std = matrix.mean(axis=0), matrix.std(axis=0)
-        ax.plot(steps, mean, label=label(algo))
-        ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), alpha=0.2)
-    ax.set(xlabel="primitive steps", ylabel="success rate (deterministic)", ylim=(-0.02, 1.02), title=env_id)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper left")
-    fig.tight_layout()
+    algos = list(dict.fromkeys(algo for task in curves.values() for algo in task))
+    # The same colour for an algorithm in every panel: tab20's even colours are tab10's, its lighter odd ones serve
+    # past the tenth algorithm (the full comparison has eleven).
+    colormap = plt.get_cmap("tab20")
+    colors = {algo: colormap((2 * index) % 20 + (2 * index) // 20) for index, algo in enumerate(algos)}
+    columns = 1 if len(curves) == 1 else 2
+    rows = math.ceil(len(curves) / columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(6.5 * columns, 4 * rows), squeeze=False, layout="constrained")
+    lines = {}
+    for ax, (env_id, task) in zip(axes.flat, curves.items(), strict=False):
+        for algo, algo_curves in task.items():
+            mean, std = algo_curves.success.mean(axis=0), algo_curves.success.std(axis=0)
+            ax.plot(algo_curves.steps, mean, label=label(algo), color=colors[algo])
+            ax.fill_between(
+                algo_curves.steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[algo], alpha=0.2
+            )
+        ax.set(xlabel="primitive steps", ylabel="success rate (deterministic)", ylim=(-0.02, 1.02), title=env_id)
+        ax.grid(alpha=0.3)
+        lines[env_id] = [line.get_label() for line in ax.get_lines()]
+    for ax in axes.flat[len(curves) :]:
+        ax.set_axis_off()
+    handles = [plt.Line2D([], [], color=colors[algo], label=label(algo)) for algo in algos]
+    fig.legend(handles=handles, loc="outside right upper")
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return lines
 
 
-def run_learning(args: argparse.Namespace) -> None:
-    out = Path(args.out)
+def report(
+    out: Path, algos: list[str], envs: list[str], seeds: list[int], name: str, figures_dir: Path
+) -> tuple[dict[str, str], dict[str, dict[str, Curves]], Path]:
+    """Tables and curves per task, the CSV ``<out>/<name>.csv`` and the figure ``<figures_dir>/<name>.png``."""
+    tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join(OPTION_METRICS)]
+    for env_id in envs:
+        tables[env_id], curves[env_id], rows = aggregate(out, algos, env_id, seeds)
+        csv_rows += rows
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.csv").write_text("\n".join(csv_rows) + "\n")
+    figures_dir.mkdir(parents=True, exist_ok=True)
+    figure = figures_dir / f"{name}.png"
+    plot_curves(curves, figure)
+    return tables, curves, figure
+
+
+def local_results(jobs: list[tuple[Any, ...]], workers: int) -> Iterator[str]:
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(learning_run, *job) for job in jobs]
+        for future in as_completed(futures):
+            yield future.result()
+
+
+def ray_results(jobs: list[tuple[Any, ...]], address: str) -> Iterator[str]:
+    """The runs as Ray tasks of one CPU on the cluster at ``address``; they write into ``--out`` themselves."""
+    import ray
+
+    # Workers unpickle learning_run, which imports configs from this directory: it must be on their path.
+    python_path = [str(Path(__file__).resolve().parent), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env_vars = {"PYTHONPATH": os.pathsep.join(python_path), "MUJOCO_GL": os.environ["MUJOCO_GL"]}
+    if "SB3_DIPPER_THREADS" in os.environ:
+        env_vars["SB3_DIPPER_THREADS"] = os.environ["SB3_DIPPER_THREADS"]
+    ray.init(address=address, runtime_env={"env_vars": env_vars})
+    try:
+        remote_run = ray.remote(num_cpus=1)(learning_run)
+        pending = [remote_run.remote(*job) for job in jobs]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            yield ray.get(done[0])
+    finally:
+        ray.shutdown()
+
+
+def resolve_protocol(args: argparse.Namespace) -> None:
+    """Fill the options not given on the command line from the protocol's presets, then from the defaults."""
+    for key, value in {**LEARNING_DEFAULTS, **PROTOCOLS.get(args.protocol, {})}.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    args.name = args.name or args.protocol or "learning"
+
+
+def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, dict[str, Curves]]]:
+    resolve_protocol(args)
+    # Absolute, so that Ray workers, whose working directory differs, write to the same place.
+    out = Path(args.out).resolve()
     overrides = parse_overrides(args.set)
     names = [run_name(algo, args.variant) for algo in args.algos]
-    todo = [
-        (algo, seed)
-        for algo in args.algos
-        for seed in args.seeds
-        if not (run_directory(out, run_name(algo, args.variant), args.env, seed) / "result.json").exists()
+    triples = [(algo, env_id, seed) for algo in args.algos for env_id in args.envs for seed in args.seeds]
+    jobs = [
+        (algo, env_id, seed, out, args.eval_freq, args.eval_episodes, args.n_timesteps, args.variant, overrides)
+        for algo, env_id, seed in triples
+        if not (run_directory(out, run_name(algo, args.variant), env_id, seed) / "result.json").exists()
     ]
-    print(f"{len(todo)} runs to do, {len(args.algos) * len(args.seeds) - len(todo)} already finished")
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        futures = [
-            pool.submit(
-                learning_run,
-                *(algo, args.env, seed, out, args.eval_freq, args.eval_episodes, args.n_timesteps, args.variant, overrides),
-            )
-            for algo, seed in todo
-        ]
-        for future in futures:
-            print(future.result(), flush=True)
-    table, curves = aggregate(out, args.report or names, args.env, args.seeds)
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    figure = RESULTS_DIR / f"{args.name}.png"
-    plot_curves(curves, args.env, figure)
+    print(f"{len(jobs)} runs to do, {len(triples) - len(jobs)} already finished", flush=True)
+    results = ray_results(jobs, args.ray_address) if args.ray_address else local_results(jobs, args.workers)
+    for result in results:
+        print(result, flush=True)
+    tables, curves, figure = report(out, args.report or names, args.envs, args.seeds, args.name, Path(args.figures_dir))
+    markdown = Path(args.benchmarks_md)
+    budget = f"{args.n_timesteps:,} primitive steps per run" if args.n_timesteps else "the YAML budgets"
     body = (
-        f"`{args.env}`, seeds {args.seeds}, deterministic success over {args.eval_episodes} episodes every "
-        f"{args.eval_freq} primitive steps; hyperparameters: the `{args.env}` entries of `hyperparams/<algo>.yml`.\n\n"
-        f"{table}\n\n![success curves]({figure.relative_to(REPO)})"
+        f"Seeds {args.seeds}, {budget}, deterministic success over {args.eval_episodes} episodes every "
+        f"{args.eval_freq:,} primitive steps; hyperparameters: each task's entry of `hyperparams/<algo>.yml`. Subgoal "
+        "distance and lower value: mean of the last 100 options at the last evaluation (hierarchical algorithms).\n\n"
+        + "\n\n".join(f"`{env_id}`\n\n{table}" for env_id, table in tables.items())
+        + f"\n\n![success curves]({os.path.relpath(figure, markdown.resolve().parent)})"
     )
-    write_section(args.name, body, "python zoo_scripts/benchmark.py learning " + " ".join(sys.argv[2:]))
+    write_section(args.name, body, "python zoo_scripts/benchmark.py learning " + " ".join(sys.argv[2:]), markdown)
     print(body)
+    return tables, curves
 
 
 def main() -> None:
@@ -278,19 +451,24 @@ def main() -> None:
     throughput.add_argument("--steps", type=int, default=1000)
     throughput.add_argument("--repeats", type=int, default=5)
     throughput.add_argument("--net-arch", type=int, nargs="+", default=[256, 256])
-    learning = commands.add_parser("learning", help="success curves of algorithms x seeds")
-    learning.add_argument("--env", default="PointMazeFourRooms-v0")
-    learning.add_argument("--algos", nargs="+", default=["dipper", "hier", "sac"])
-    learning.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    learning.add_argument("--workers", type=int, default=2)
-    learning.add_argument("--eval-freq", type=int, default=20_000)
-    learning.add_argument("--eval-episodes", type=int, default=50)
-    learning.add_argument("--n-timesteps", type=int, default=None, help="override every entry's n_timesteps")
+    learning = commands.add_parser("learning", help="success curves of algorithms x tasks x seeds")
+    learning.add_argument("--protocol", choices=sorted(PROTOCOLS), help="preset algorithms, tasks, seeds and budgets")
+    # Defaults (None) come from the protocol, then from LEARNING_DEFAULTS; see resolve_protocol.
+    learning.add_argument("--envs", "--env", nargs="+", help=f"tasks (default: {POINT_MAZE})")
+    learning.add_argument("--algos", nargs="+", help=f"zoo names (default: {' '.join(LEARNING_DEFAULTS['algos'])})")
+    learning.add_argument("--seeds", type=int, nargs="+", help=f"default: {LEARNING_DEFAULTS['seeds']}")
+    learning.add_argument("--eval-freq", type=int, help=f"default: {LEARNING_DEFAULTS['eval_freq']} primitive steps")
+    learning.add_argument("--eval-episodes", type=int, help=f"default: {LEARNING_DEFAULTS['eval_episodes']}")
+    learning.add_argument("--n-timesteps", type=int, help="override every entry's n_timesteps")
+    learning.add_argument("--workers", type=int, default=2, help="processes of the local pool")
+    learning.add_argument("--ray-address", help="run on this Ray cluster (e.g. 10.0.0.1:6379 or auto) instead")
     learning.add_argument("--out", default="runs/benchmark")
-    learning.add_argument("--name", default="learning", help="section of BENCHMARKS.md and figure name")
+    learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")
     learning.add_argument("--variant", default=None, help="name of a variant; its runs live in <algo>-<variant>")
     learning.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameter overrides of a variant")
     learning.add_argument("--report", nargs="*", default=None, help="runs to put in the table (default: this command's)")
+    learning.add_argument("--benchmarks-md", default=str(BENCHMARKS_MD), help="markdown file the section is written to")
+    learning.add_argument("--figures-dir", default=str(RESULTS_DIR), help="directory of the figure")
     args = parser.parse_args()
     {"throughput": run_throughput, "learning": run_learning}[args.command](args)
 

@@ -37,7 +37,10 @@ def default_demonstrations(env_id: str) -> Demonstrations:
     path = default_demonstration_path(env_id)
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-        expert_demonstrations(env_id, n_episodes=1, seed=0).save(path)
+        # Write then rename, so a process that finds the file (parallel tests, zoo workers) never reads half of it.
+        partial = path.with_name(f"{path.stem}.{os.getpid()}.partial.npz")
+        expert_demonstrations(env_id, n_episodes=1, seed=0).save(partial)
+        os.replace(partial, path)
     return load_demonstrations(path)
 
 

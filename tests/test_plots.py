@@ -1,0 +1,134 @@
+"""``zoo_scripts/plot.py``: figures from hand-written zoo log folders, and from the logs of a real ``train`` run."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from tests.test_zoo import ENV_ID, TINY_PARAMS, zoo
+from zoo_scripts import plot
+
+ENVS = ["MazeA-v0", "MazeB-v0"]
+SEEDS = [0, 1]
+STEPS = np.arange(1, 6) * 1000
+
+
+def write_run(folder, algo, env_id, seed, evaluations=True, hierarchical=True):
+    """One zoo run folder: evaluations.npz, a monitor file with is_success, and an SB3 progress.csv."""
+    run = folder / algo / f"{env_id}_{seed + 1}"
+    run.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    success = np.clip(np.linspace(0, 1, len(STEPS))[:, None] + rng.normal(0, 0.1, (len(STEPS), 4)), 0, 1).round()
+    if evaluations:
+        np.savez(
+            run / "evaluations.npz",
+            timesteps=STEPS,
+            results=success - 1,
+            ep_lengths=np.full_like(success, 50),
+            successes=success,
+        )
+    episodes = "\n".join(f"{-50.0},50,{t:.1f},{float(t > 60)}" for t in range(100))
+    (run / "0.monitor.csv").write_text(f"#{json.dumps({'t_start': 0.0, 'env_id': env_id})}\nr,l,t,is_success\n{episodes}\n")
+    header, rows = (
+        "time/total_timesteps,rollout/success_rate",
+        [f"{t},{s}" for t, s in zip(STEPS, success.mean(axis=1), strict=True)],
+    )
+    if hierarchical:
+        # rollout/low_value is logged only after learning_starts: empty cells, as SB3's CSV logger writes them.
+        header += ",rollout/subgoal_distance,rollout/low_value"
+        rows = [f"{row},{1 / t},{'' if i == 0 else -t / 1000}" for i, (row, t) in enumerate(zip(rows, STEPS, strict=True))]
+    (run / "progress.csv").write_text("\n".join([header, *rows]) + "\n")
+
+
+@pytest.fixture
+def logs(tmp_path):
+    """DIPPER with evaluations and hierarchical metrics, SAC with monitor files only and no hierarchical metrics."""
+    for env_id in ENVS:
+        for seed in SEEDS:
+            write_run(tmp_path / "logs", "dipper", env_id, seed)
+            write_run(tmp_path / "logs", "sac", env_id, seed, evaluations=False, hierarchical=False)
+    return tmp_path / "logs"
+
+
+def test_success_figure_has_a_line_and_a_band_per_algorithm_in_every_panel(logs, tmp_path):
+    fig = plot.plot_success(logs, ["dipper", "sac"], ENVS, window=10)
+    assert [ax.get_title() for ax in fig.axes] == ENVS
+    for ax in fig.axes:
+        assert [line.get_label() for line in ax.get_lines()] == ["DIPPER", "SAC+HER"]
+        assert len(ax.collections) == 2  # the standard-deviation bands
+        np.testing.assert_array_equal(ax.get_lines()[0].get_xdata(), STEPS)  # evaluations, not the monitor
+    assert [text.get_text() for text in fig.legends[0].get_texts()] == ["DIPPER", "SAC+HER"]
+    written = plot.save(fig, tmp_path / "figures" / "success", ["png", "pdf"])
+    assert all(path.stat().st_size > 0 for path in written) and len(written) == 2
+
+
+def test_success_is_the_mean_over_seeds_and_monitor_runs_are_smoothed(logs):
+    dipper_runs = plot.find_runs(logs, "dipper", ENVS[0])
+    steps, mean, std = plot.aggregate([plot.success_curve(run) for run in dipper_runs])
+    expected = np.stack([np.load(run / "evaluations.npz")["successes"].mean(axis=1) for run in dipper_runs])
+    np.testing.assert_allclose(mean, expected.mean(axis=0))
+    np.testing.assert_allclose(std, expected.std(axis=0))
+    steps, success = plot.success_curve(plot.find_runs(logs, "sac", ENVS[0])[0], window=10)
+    np.testing.assert_array_equal(steps, np.arange(1, 101) * 50)
+    assert success[60] == 0 and success[65] == pytest.approx(0.5) and success[-1] == 1
+
+
+def test_hierarchical_metrics_skip_algorithms_without_them(logs):
+    fig = plot.plot_hierarchical_metrics(logs, ["dipper", "sac"], ENVS)
+    assert fig is not None and len(fig.axes) == 4
+    for ax in fig.axes:
+        assert [line.get_label() for line in ax.get_lines()] == ["DIPPER"]
+    low_value = fig.axes[2].get_lines()[0]
+    np.testing.assert_array_equal(low_value.get_xdata(), STEPS[1:])  # the empty cells are dropped
+    assert plot.plot_hierarchical_metrics(logs, ["sac"], ENVS) is None
+
+
+def test_cli_writes_every_figure_and_the_iqm_table(logs, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "figures"
+    argv = ["plot.py", "-f", str(logs), "--algos", "dipper", "sac", "--envs", *ENVS, "--out", str(out), "--iqm"]
+    monkeypatch.setattr(sys, "argv", [*argv, "--reps", "50", "--format", "png"])
+    plot.main()
+    names = {"success", "hierarchical_metrics", "final_success_iqm"}
+    expected = {f"{name}.png" for name in names} | {"final_success_iqm.csv"}
+    assert {path.name for path in out.iterdir()} == expected
+    assert set(capsys.readouterr().out.split()) == {str(out / name) for name in expected}
+
+
+def test_iqm_has_one_bar_per_algorithm_and_env(logs):
+    table = plot.final_success_iqm(logs, ["dipper", "sac"], ENVS, window=10, reps=50)
+    assert len(table) == 4 and (table["n_runs"] == 2).all()
+    assert ((table["low"] <= table["iqm"]) & (table["iqm"] <= table["high"])).all()
+    assert table.set_index(["algo", "env"]).loc[("sac", ENVS[0]), "iqm"] == 1  # the last 10 episodes all succeeded
+    fig = plot.plot_iqm(table)
+    assert [len(ax.patches) for ax in fig.axes] == [2, 2]
+
+
+def test_a_missing_run_folder_is_a_clear_error(logs, tmp_path, monkeypatch, capsys):
+    with pytest.raises(FileNotFoundError, match="no runs of hier on MazeA-v0"):
+        plot.find_runs(logs, "hier", "MazeA-v0")
+    argv = ["plot.py", "-f", str(logs), "--algos", "dipper", "--envs", "MazeC-v0", "--out", str(tmp_path / "figures")]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main()
+    assert exit_info.value.code == 1
+    assert "no runs of dipper on MazeC-v0" in capsys.readouterr().err
+    (logs / "dipper" / "MazeC-v0_1").mkdir()
+    with pytest.raises(FileNotFoundError, match="has no success data"):
+        plot.plot_success(logs, ["dipper"], ["MazeC-v0"])
+
+
+def test_plots_the_logs_of_a_real_zoo_run(tmp_path):
+    trained = zoo(
+        "train", "--algo", "dipper", "--env", ENV_ID, "-n", "300", "--seed", "0", "-f", "logs", "--eval-freq", "100",
+        "--eval-episodes", "2", "--env-kwargs", "max_episode_steps:50", "-params", *TINY_PARAMS["dipper"], cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    logs = tmp_path / "logs"
+    fig = plot.plot_success(logs, ["dipper"], [ENV_ID])
+    np.testing.assert_array_equal(fig.axes[0].get_lines()[0].get_xdata(), [100, 200, 300])
+    assert plot.save(fig, tmp_path / "figures" / "success", ["png"])[0].exists()
+    table = plot.final_success_iqm(logs, ["dipper"], [ENV_ID], reps=20)
+    assert table["n_runs"].tolist() == [1] and 0 <= table["iqm"][0] <= 1
+    # rl-zoo3 logs to stdout (or TensorBoard), never to progress.csv: no hierarchical-metrics figure.
+    assert plot.plot_hierarchical_metrics(logs, ["dipper"], [ENV_ID]) is None

@@ -1,0 +1,287 @@
+"""Figures from rl-zoo3 log folders: success curves, hierarchical metrics and the IQM of the final success.
+
+    python zoo_scripts/plot.py -f logs --algos dipper hier sac --envs PointMazeFourRooms-v0 --out figures/
+    python zoo_scripts/plot.py -f logs --algos dipper hier sac --envs FetchPush-v4 FetchPickAndPlace-v4 --iqm --format png
+
+Runs are the zoo's folders ``<log_folder>/<algo>/<env_id>_<n>[_<uuid>]/``; the runs of one algorithm on one env are its
+seeds. Written to ``--out``:
+
+- ``success.{png,pdf}`` (the look of Figure 2 of the DIPPER paper): success rate against primitive steps, mean and a
+  standard-deviation band over seeds, one line per algorithm, one panel per env. The success rate comes from the
+  deterministic evaluations of the zoo's ``EvalCallback`` (``evaluations.npz``, key ``successes``) when a run has them,
+  otherwise from the training episodes' ``is_success`` in the monitor files, smoothed over ``--window`` episodes.
+- ``hierarchical_metrics.{png,pdf}`` (Figure 3 of the paper): ``rollout/subgoal_distance`` and ``rollout/low_value``
+  against steps from SB3's CSV logger (``progress.csv`` anywhere in a run folder); algorithms without them are left out.
+- with ``--iqm``, ``final_success_iqm.{png,pdf,csv}``: the interquartile mean of the final success over seeds with
+  stratified-bootstrap 95 % confidence intervals (``rliable``), one bar per algorithm and env.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+import pandas as pd
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+from matplotlib.artist import Artist
+from matplotlib.figure import Figure
+from stable_baselines3.common.monitor import LoadMonitorResultsError, load_results
+
+# A curve: x (primitive steps) and y, one value per x.
+Curve = tuple[np.ndarray, np.ndarray]
+
+LABELS = {
+    "dipper": "DIPPER",
+    "dipper_paper": "DIPPER (paper)",
+    "dipper_nov": "DIPPER-No-V",
+    "hier": "HIER",
+    "hac": "HAC",
+    "dac": "DAC",
+    "dpo_flat": "DPO-FLAT",
+    "piper": "PIPER",
+    "saga": "SAGA",
+    "raps": "RAPS",
+    "sac": "SAC+HER",
+    "tqc": "TQC+HER",
+}
+HIERARCHICAL_METRICS = {"rollout/subgoal_distance": "distance to the subgoal", "rollout/low_value": "lower value"}
+STEPS_KEY = "time/total_timesteps"
+
+
+def label(algo: str) -> str:
+    return LABELS.get(algo, algo)
+
+
+def find_runs(log_folder: Path, algo: str, env_id: str) -> list[Path]:
+    """The zoo's run folders of ``algo`` on ``env_id``, in run order; a clear error when there are none."""
+    algo_folder = Path(log_folder) / algo
+    pattern = re.compile(rf"{re.escape(env_id)}_(\d+)(_.*)?")
+    numbered = [(pattern.fullmatch(path.name), path) for path in algo_folder.glob(f"{env_id}_*") if path.is_dir()]
+    runs = [path for _, path in sorted((int(match[1]), path) for match, path in numbered if match is not None)]
+    if not runs:
+        found = sorted(path.name for path in algo_folder.iterdir()) if algo_folder.is_dir() else []
+        raise FileNotFoundError(
+            f"no runs of {algo} on {env_id} in {algo_folder}/ (expected folders {env_id}_<n>; found {found or 'nothing'})"
+        )
+    return runs
+
+
+def success_curve(run: Path, window: int = 100) -> Curve:
+    """Success rate against primitive steps of one run: its evaluations, else its smoothed training episodes."""
+    evaluations = run / "evaluations.npz"
+    if evaluations.exists():
+        with np.load(evaluations) as data:
+            if "successes" in data and data["successes"].size > 0:
+                return data["timesteps"].astype(float), data["successes"].mean(axis=1)
+    try:
+        episodes = load_results(str(run))
+    except LoadMonitorResultsError:
+        episodes = None
+    if episodes is None or "is_success" not in episodes or episodes.empty:
+        raise FileNotFoundError(
+            f"{run} has no success data: neither evaluations.npz with 'successes' (train with --eval-freq on an env "
+            "that reports info['is_success']) nor monitor files with an is_success column "
+            "(monitor_kwargs: dict(info_keywords=('is_success',)))"
+        )
+    # load_results merges the monitor files of all envs in time order, so the summed lengths count every env's steps.
+    steps = episodes["l"].cumsum().to_numpy(dtype=float)
+    success = episodes["is_success"].astype(float).rolling(window, min_periods=1).mean().to_numpy()
+    return steps, success
+
+
+def final_success(run: Path, window: int = 100) -> float:
+    """The last point of a run's success curve: its last evaluation, or its last ``window`` training episodes."""
+    return float(success_curve(run, window)[1][-1])
+
+
+def aggregate(curves: list[Curve], n_points: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and standard deviation over seeds; seeds that were not measured at the same steps are interpolated.
+
+    Only the steps every seed reached are kept, so the mean never mixes a different number of seeds along the curve.
+    """
+    if all(len(x) == len(curves[0][0]) and np.array_equal(x, curves[0][0]) for x, _ in curves):
+        steps, values = curves[0][0], np.stack([y for _, y in curves])
+    else:
+        start, end = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
+        steps = np.linspace(start, end, n_points) if end > start else np.array([end])
+        values = np.stack([np.interp(steps, x, y) for x, y in curves])
+    return steps, values.mean(axis=0), values.std(axis=0)
+
+
+def _colors(algos: list[str]) -> dict[str, str]:
+    """One color per algorithm, the same in every panel and figure."""
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    return {algo: cycle[i % len(cycle)] for i, algo in enumerate(algos)}
+
+
+def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
+    """One legend below the panels (as in the paper's figures), with every algorithm that appears in any panel."""
+    entries: dict[str, Artist] = {}
+    for ax in axes.flat:
+        for handle, text in zip(*ax.get_legend_handles_labels(), strict=True):
+            entries.setdefault(text, handle)
+    fig.tight_layout(rect=(0, 0.45 / fig.get_figheight(), 1, 1))  # half an inch for the legend
+    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=min(len(entries), 6), frameon=False)
+
+
+def plot_success(log_folder: Path, algos: list[str], envs: list[str], window: int = 100) -> Figure:
+    """Success rate against primitive steps: mean and standard-deviation band over seeds, one panel per env."""
+    colors = _colors(algos)
+    fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 3.4), squeeze=False, sharey=True)
+    for ax, env_id in zip(axes[0], envs, strict=True):
+        for algo in algos:
+            steps, mean, std = aggregate([success_curve(run, window) for run in find_runs(log_folder, algo, env_id)])
+            ax.plot(steps, mean, color=colors[algo], label=label(algo))
+            ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[algo], alpha=0.2)
+        ax.set(title=env_id, xlabel="primitive steps", ylim=(-0.02, 1.02))
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_ylabel("success rate")
+    _shared_legend(fig, axes)
+    return fig
+
+
+def load_progress(run: Path) -> pd.DataFrame | None:
+    """The SB3 CSV log of a run (``progress.csv`` anywhere in its folder), or None when it has none."""
+    files = sorted(run.rglob("progress.csv"))
+    if not files:
+        return None
+    # A run resumed with `-i` writes a second log; concatenated in step order they form one curve.
+    frames = [pd.read_csv(path) for path in files if path.stat().st_size > 0]
+    frames = [frame for frame in frames if STEPS_KEY in frame]
+    return pd.concat(frames).sort_values(STEPS_KEY) if frames else None
+
+
+def metric_curve(progress: pd.DataFrame, key: str) -> Curve | None:
+    """``key`` against steps, where it was logged (``rollout/low_value`` starts only after ``learning_starts``)."""
+    if key not in progress:
+        return None
+    logged = progress[[STEPS_KEY, key]].dropna()
+    if logged.empty:
+        return None
+    return logged[STEPS_KEY].to_numpy(dtype=float), logged[key].to_numpy(dtype=float)
+
+
+def plot_hierarchical_metrics(log_folder: Path, algos: list[str], envs: list[str]) -> Figure | None:
+    """Distance to the subgoal and lower value against steps, one row per metric and one column per env.
+
+    Flat algorithms log neither metric and are left out; returns None when no run has them.
+    """
+    colors = _colors(algos)
+    n_rows = len(HIERARCHICAL_METRICS)
+    fig, axes = plt.subplots(n_rows, len(envs), figsize=(4.2 * len(envs), 3.4 * n_rows), squeeze=False, sharey="row")
+    plotted = False
+    for col, env_id in enumerate(envs):
+        for algo in algos:
+            logs = [load_progress(run) for run in find_runs(log_folder, algo, env_id)]
+            for row, key in enumerate(HIERARCHICAL_METRICS):
+                curves = [curve for progress in logs if progress is not None and (curve := metric_curve(progress, key))]
+                if not curves:
+                    continue
+                steps, mean, std = aggregate(curves)
+                ax = axes[row, col]
+                ax.plot(steps, mean, color=colors[algo], label=label(algo))
+                ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2)
+                plotted = True
+        for row, name in enumerate(HIERARCHICAL_METRICS.values()):
+            axes[row, col].set(title=env_id if row == 0 else None, xlabel="primitive steps", ylabel=name if col == 0 else None)
+            axes[row, col].grid(alpha=0.3)
+    if not plotted:
+        plt.close(fig)
+        return None
+    _shared_legend(fig, axes)
+    return fig
+
+
+def final_success_iqm(
+    log_folder: Path, algos: list[str], envs: list[str], window: int = 100, reps: int = 2000, seed: int = 0
+) -> pd.DataFrame:
+    """IQM of the final success over seeds with a stratified-bootstrap 95 % interval, per algorithm and env."""
+    from rliable import library, metrics
+
+    rows = []
+    for env_id in envs:
+        # rliable expects (runs, tasks) score matrices; each env is estimated on its own, as one task.
+        scores = {
+            algo: np.array([[final_success(run, window)] for run in find_runs(log_folder, algo, env_id)]) for algo in algos
+        }
+        np.random.seed(seed)  # rliable's bootstrap draws from NumPy's global generator
+        points, intervals = library.get_interval_estimates(
+            scores, lambda matrix: np.array([metrics.aggregate_iqm(matrix)]), reps=reps
+        )
+        for algo in algos:
+            rows.append(
+                dict(
+                    algo=algo,
+                    env=env_id,
+                    n_runs=len(scores[algo]),
+                    iqm=float(points[algo][0]),
+                    low=float(intervals[algo][0, 0]),
+                    high=float(intervals[algo][1, 0]),
+                )
+            )
+    return pd.DataFrame(rows)
+
+
+def plot_iqm(table: pd.DataFrame) -> Figure:
+    """One horizontal bar per algorithm (IQM) with its confidence interval, one panel per env."""
+    algos, envs = list(dict.fromkeys(table["algo"])), list(dict.fromkeys(table["env"]))
+    colors = _colors(algos)
+    fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 0.5 * len(algos) + 1.5), squeeze=False, sharey=True)
+    for ax, env_id in zip(axes[0], envs, strict=True):
+        rows = table[table["env"] == env_id].set_index("algo").loc[algos]
+        errors = np.stack([rows["iqm"] - rows["low"], rows["high"] - rows["iqm"]])
+        ax.barh([label(algo) for algo in algos], rows["iqm"], xerr=errors, color=[colors[algo] for algo in algos], alpha=0.8)
+        ax.set(title=env_id, xlabel="final success rate (IQM, 95 % CI)", xlim=(0, 1.02))
+        ax.grid(axis="x", alpha=0.3)
+    axes[0, 0].invert_yaxis()  # first algorithm on top, as listed on the command line (once: the y axis is shared)
+    fig.tight_layout()
+    return fig
+
+
+def save(fig: Figure, path: Path, formats: list[str]) -> list[Path]:
+    """Write ``fig`` as ``path.<format>`` for every format and close it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    written = [path.with_suffix(f".{fmt}") for fmt in formats]
+    for file in written:
+        fig.savefig(file, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return written
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-f", "--log-folder", default="logs", type=Path, help="the zoo's log folder (train -f)")
+    parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm names, one line (or bar) each")
+    parser.add_argument("--envs", nargs="+", required=True, help="env ids, one panel each")
+    parser.add_argument("--out", default="figures", type=Path, help="output folder")
+    parser.add_argument("--format", nargs="+", default=["png", "pdf"], dest="formats", help="figure file formats")
+    parser.add_argument("--window", default=100, type=int, help="episodes to smooth monitor-based success over")
+    parser.add_argument("--iqm", action="store_true", help="also plot the IQM of the final success (rliable)")
+    parser.add_argument("--reps", default=2000, type=int, help="bootstrap samples of the IQM confidence intervals")
+    args = parser.parse_args()
+
+    try:
+        written = save(plot_success(args.log_folder, args.algos, args.envs, args.window), args.out / "success", args.formats)
+        metrics_fig = plot_hierarchical_metrics(args.log_folder, args.algos, args.envs)
+        if metrics_fig is None:
+            print("No progress.csv with rollout/subgoal_distance or rollout/low_value: no hierarchical-metrics figure.")
+        else:
+            written += save(metrics_fig, args.out / "hierarchical_metrics", args.formats)
+        if args.iqm:
+            table = final_success_iqm(args.log_folder, args.algos, args.envs, args.window, args.reps)
+            written += save(plot_iqm(table), args.out / "final_success_iqm", args.formats)
+            table.to_csv(args.out / "final_success_iqm.csv", index=False)
+            written.append(args.out / "final_success_iqm.csv")
+    except FileNotFoundError as error:
+        parser.exit(1, f"error: {error}\n")
+    for path in written:
+        print(path)
+
+
+if __name__ == "__main__":
+    main()
