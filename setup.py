@@ -35,7 +35,7 @@ setup(
     ],
     extras_require={
         # rl-zoo3's enjoy imports requests without declaring it.
-        "zoo": ["rl-zoo3[plots]>=2.9.2,<3", "requests", "pyyaml"],
+        "zoo": ["rl-zoo3[plots]>=2.9.2,<3", "requests", "pyyaml", "moviepy>=1.0"],
         "plots": ["matplotlib>=3.7", "pandas>=2.2", "rliable>=1.2"],
         # Reading Minari dataset directories as demonstrations.
         "minari": ["minari[hdf5]>=0.5"],

@@ -14,6 +14,7 @@ For algorithms and envs this package has hyperparameters for, ``train`` reads ``
 
 from __future__ import annotations
 
+import runpy
 import sys
 import tempfile
 from pathlib import Path
@@ -22,6 +23,8 @@ from typing import Any
 import optuna
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import CSVOutputFormat
 
 from sb3_dipper.dac import DAC
 from sb3_dipper.dipper import DIPPER
@@ -45,6 +48,24 @@ ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "dac": DAC,
     "dpo_flat": DPOFlat,
 }
+
+
+class CSVProgressCallback(BaseCallback):
+    """Also write the logger's records to ``progress.csv`` beside the run's monitor files.
+
+    rl-zoo3 logs to stdout (and TensorBoard); ``zoo_scripts/plot.py`` reads ``progress.csv`` for the hierarchical
+    metrics (``rollout/subgoal_distance``, ``rollout/low_value``). Our YAML files name this class under ``callback``.
+    """
+
+    def _init_callback(self) -> None:
+        writer = self.training_env.get_attr("results_writer", indices=[0])[0]
+        if writer is None:  # a Monitor without a file: nowhere to put progress.csv
+            return
+        folder = Path(writer.file_handler.name).parent
+        self.model.logger.output_formats.append(CSVOutputFormat(str(folder / "progress.csv")))
+
+    def _on_step(self) -> bool:
+        return True
 
 
 def hyperparams_dir() -> Path:
@@ -167,8 +188,13 @@ def _flag_value(argv: list[str], *flags: str) -> str | None:
 
 
 def main() -> None:
-    """``sb3-dipper-zoo {train,enjoy,plot_train,plot_from_file,all_plots} ...``: rl-zoo3's CLI with our algorithms."""
+    """``sb3-dipper-zoo {train,enjoy,record_video,plot_train,plot_from_file,all_plots} ...``: rl-zoo3's CLI, our algorithms."""
     register()
+    if sys.argv[1:2] == ["record_video"]:
+        # rl-zoo3's video recorder is a module of its own, not a subcommand of its CLI.
+        sys.argv = [sys.argv[0], *sys.argv[2:]]
+        runpy.run_module("rl_zoo3.record_video", run_name="__main__")
+        return
     from rl_zoo3.cli import main as zoo_main
 
     sys.argv = [sys.argv[0], *_with_default_conf_file(sys.argv[1:])]

@@ -186,3 +186,21 @@ def test_every_sampler_suggests_only_constructor_keywords(algo):
     for _ in range(20):
         params = SAMPLERS[algo](study.ask(), 2, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
         assert set(params) <= accepted, f"{algo}'s sampler suggests {set(params) - accepted}"
+
+
+def test_a_hierarchical_run_logs_its_metrics_to_csv_and_records_a_video(tmp_path):
+    trained = zoo(
+        "train", "--algo", "hier", "--env", ENV_ID, "-n", "300", "--seed", "0", "-f", "logs", "--eval-freq", "-1",
+        "--env-kwargs", "max_episode_steps:50", "-params", *TINY_PARAMS["hier"], cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    run_dir = tmp_path / "logs" / "hier" / f"{ENV_ID}_1"
+    header = (run_dir / "progress.csv").read_text().splitlines()[0].split(",")
+    assert {"rollout/subgoal_distance", "rollout/low_value", "rollout/success_rate"} <= set(header)
+
+    recorded = zoo(
+        "record_video", "--algo", "hier", "--env", ENV_ID, "-f", "logs", "--exp-id", "1", "-n", "60",
+        "--env-kwargs", "max_episode_steps:50", cwd=tmp_path,
+    )  # fmt: skip
+    assert recorded.returncode == 0, recorded.stderr[-3000:]
+    assert list((run_dir / "videos").glob("*.mp4"))
