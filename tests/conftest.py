@@ -8,7 +8,9 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_dipper
-from sb3_dipper import DIPPER, HAC, HIER, PIPER, SAGA
+from stable_baselines3 import HerReplayBuffer
+
+from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat
 
 # One thread: tests run tiny networks, where more threads only add overhead and timing noise.
 th.set_num_threads(1)
@@ -51,6 +53,25 @@ def tiny_model(model_class, env, policy="MultiInputPolicy", **overrides):
     return model_class(policy, env, **kwargs)
 
 
+# Every algorithm of the package. RAPS has no learned lower level and DAC, DPOFlat are flat, so their tiny models are
+# built here rather than through `tiny_model`.
+ALL_ALGORITHMS = [*HIERARCHICAL_ALGORITHMS, RAPS, DAC, DPOFlat]
+OTHER_TINY_MODELS = {
+    RAPS: dict(option_steps=5, high_batch_size=16, high_buffer_size=1000),
+    DAC: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, discriminator_net_arch=[16]),
+    DPOFlat: dict(segment_length=5, n_preference_pairs=200, pairs_per_batch=8, trajectory_buffer_size=50),
+}
+
+
+def any_tiny_model(model_class, env, **overrides):
+    """A test-sized model of any algorithm of the package."""
+    if model_class in TINY_KWARGS:
+        return tiny_model(model_class, env, **overrides)
+    kwargs = dict(learning_starts=40, policy_kwargs=dict(net_arch=[16]), seed=0, **OTHER_TINY_MODELS[model_class])
+    kwargs.update(overrides)
+    return model_class("MultiInputPolicy", env, **kwargs)
+
+
 def short_maze(n_envs: int = 1, seed: int = 0, **kwargs):
     return make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=n_envs, seed=seed, env_kwargs=SHORT_EPISODES, **kwargs)
 
@@ -62,4 +83,4 @@ def maze_env():
     env.close()
 
 
-__all__ = ["HIERARCHICAL_ALGORITHMS", "sb3_dipper", "short_maze", "tiny_model"]
+__all__ = ["ALL_ALGORITHMS", "HIERARCHICAL_ALGORITHMS", "any_tiny_model", "sb3_dipper", "short_maze", "tiny_model"]

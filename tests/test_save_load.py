@@ -5,7 +5,7 @@ import pytest
 import torch as th
 
 from sb3_dipper import DIPPER
-from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
+from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 
 
 def rollout_actions(model, env, steps: int = 30) -> np.ndarray:
@@ -30,6 +30,28 @@ def test_save_load_without_env_predicts_the_same_actions(model_class, tmp_path, 
     # A predict-only load does not allocate the training buffers.
     assert loaded.lower.replay_buffer.buffer_size < 100
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_every_algorithm_saves_loads_without_env_and_predicts_the_same(model_class, tmp_path, maze_env):
+    model = any_tiny_model(model_class, maze_env)
+    model.learn(200)
+    model.save(tmp_path / "model")
+    loaded = model_class.load(tmp_path / "model", env=None)
+    assert loaded.get_env() is None
+    np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_every_algorithm_repeats_its_run_with_the_same_seed(model_class):
+    def trained_parameters():
+        model = any_tiny_model(model_class, short_maze(seed=3), seed=3)
+        model.learn(300)
+        return {name: tensor.clone() for name, tensor in model.policy.state_dict().items()}
+
+    first, second = trained_parameters(), trained_parameters()
+    assert first.keys() == second.keys()
+    assert all(th.equal(first[name], second[name]) for name in first)
 
 
 def test_the_planning_graph_is_saved_with_the_model(tmp_path, maze_env):
