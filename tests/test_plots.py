@@ -130,5 +130,6 @@ def test_plots_the_logs_of_a_real_zoo_run(tmp_path):
     assert plot.save(fig, tmp_path / "figures" / "success", ["png"])[0].exists()
     table = plot.final_success_iqm(logs, ["dipper"], [ENV_ID], reps=20)
     assert table["n_runs"].tolist() == [1] and 0 <= table["iqm"][0] <= 1
-    # rl-zoo3 logs to stdout (or TensorBoard), never to progress.csv: no hierarchical-metrics figure.
-    assert plot.plot_hierarchical_metrics(logs, ["dipper"], [ENV_ID]) is None
+    # Our YAML's CSVProgressCallback writes progress.csv into the run folder: the hierarchical metrics are plotted.
+    metrics = plot.plot_hierarchical_metrics(logs, ["dipper"], [ENV_ID])
+    assert metrics is not None and all(len(ax.get_lines()) == 1 for ax in metrics.axes)
