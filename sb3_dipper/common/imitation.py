@@ -25,6 +25,7 @@ from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
+from sb3_dipper.common.low_level import step_entropy_coefficient
 from sb3_dipper.common.subgoals import SubgoalSpace
 
 
@@ -117,7 +118,7 @@ class DemoSAC(SAC):
             # Entropy coefficient (as SAC).
             actions_pi, log_prob = self.actor.action_log_prob(batch.observations)
             log_prob = log_prob.reshape(-1, 1)
-            ent_coef = self._entropy_coefficient(log_prob)
+            ent_coef = step_entropy_coefficient(self, log_prob)
             logs["ent_coef"].append(ent_coef.item())
 
             # Critic: soft Bellman targets on replay and demo transitions alike.
@@ -173,15 +174,6 @@ class DemoSAC(SAC):
             dones=th.cat((replay.dones, th.zeros((n_demo, 1), device=self.device))),
             rewards=th.cat((replay.rewards, th.as_tensor(rewards, device=self.device).reshape(-1, 1))),
         )
-
-    def _entropy_coefficient(self, log_prob: th.Tensor) -> th.Tensor:
-        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
-            return self.ent_coef_tensor
-        ent_coef_loss = -(self.log_ent_coef * (log_prob + float(self.target_entropy)).detach()).mean()
-        self.ent_coef_optimizer.zero_grad()
-        ent_coef_loss.backward()
-        self.ent_coef_optimizer.step()
-        return th.exp(self.log_ent_coef.detach())
 
     def _cloning_loss(self, batch: DictReplayBufferSamples, is_demo: th.Tensor) -> tuple[th.Tensor, float]:
         """Sum of squared errors between the deterministic action and the demo action, over Q-filtered demo steps."""

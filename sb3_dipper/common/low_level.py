@@ -185,6 +185,17 @@ class LevelLogger:
         return getattr(self._logger, name)
 
 
+def step_entropy_coefficient(sac: SAC, log_prob: th.Tensor) -> th.Tensor:
+    """SAC's entropy coefficient for this gradient step: fixed, or after one step of its own loss when it is learned."""
+    if sac.ent_coef_optimizer is None or sac.log_ent_coef is None:
+        return sac.ent_coef_tensor
+    ent_coef_loss = -(sac.log_ent_coef * (log_prob + float(sac.target_entropy)).detach()).mean()
+    sac.ent_coef_optimizer.zero_grad()
+    ent_coef_loss.backward()
+    sac.ent_coef_optimizer.step()
+    return th.exp(sac.log_ent_coef.detach())
+
+
 def sac_state_value(sac: SAC, obs: dict[str, th.Tensor], critic: th.nn.Module | None = None) -> th.Tensor:
     """``V(s, g) = min_i Q_i(s, g, a) - alpha * log pi(a | s, g)``, ``a ~ pi`` (one sample), shape ``(N,)``.
 

@@ -47,7 +47,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.hierarchical import has_finished_episode
-from sb3_dipper.common.low_level import SACLowLevel
+from sb3_dipper.common.low_level import SACLowLevel, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import sparse_goal_reached_fn
@@ -109,7 +109,7 @@ class ClippedSAC(SAC):
             # Entropy coefficient (SAC).
             actions_pi, log_prob = self.actor.action_log_prob(batch.observations)
             log_prob = log_prob.reshape(-1, 1)
-            ent_coef = self._entropy_coefficient(log_prob)
+            ent_coef = step_entropy_coefficient(self, log_prob)
             logs["ent_coef"].append(ent_coef.item())
 
             # Critic: no bootstrap where done, target clipped (HAC critic.py).
@@ -150,16 +150,6 @@ class ClippedSAC(SAC):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
-
-    def _entropy_coefficient(self, log_prob: th.Tensor) -> th.Tensor:
-        """The entropy coefficient, after one step of its own loss when it is learned."""
-        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
-            return self.ent_coef_tensor
-        ent_coef_loss = -(self.log_ent_coef * (log_prob + float(self.target_entropy)).detach()).mean()
-        self.ent_coef_optimizer.zero_grad()
-        ent_coef_loss.backward()
-        self.ent_coef_optimizer.step()
-        return th.exp(self.log_ent_coef.detach())
 
 
 class SubgoalTestingLowLevel:
