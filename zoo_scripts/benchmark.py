@@ -64,24 +64,11 @@ from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from configs import episode_successes, load_entry, make_env, make_model, torch_threads
+from plot import LABELS
 
 REPO = Path(__file__).resolve().parent.parent
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
 RESULTS_DIR = REPO / "docs" / "benchmarks"
-LABELS = {
-    "dipper": "DIPPER",
-    "dipper_paper": "DIPPER (paper)",
-    "dipper_nov": "DIPPER-No-V",
-    "hier": "HIER",
-    "hac": "HAC",
-    "raps": "RAPS",
-    "piper": "PIPER",
-    "saga": "SAGA",
-    "dac": "DAC",
-    "dpo_flat": "DPO-FLAT",
-    "sac": "SAC+HER",
-    "tqc": "TQC+HER",
-}
 POINT_MAZE = "PointMazeFourRooms-v0"
 PAPER_TASKS = ["FetchFourRoomMaze-v0", "FetchPickAndPlace-v4", "FetchPush-v4", "FrankaKitchenMicrowaveBurner-v0"]
 # The paper's comparison (its DIPPER, DIPPER-No-V and baselines, SAC+HER as FLAT) plus this package's DIPPER.
