@@ -33,7 +33,14 @@ from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.demonstrations import load_demonstrations
 from sb3_dipper.common.imitation import DemonstrationBuffer, DemoSAC
-from sb3_dipper.common.low_level import LevelLogger, SACLowLevel, SubgoalNormalizer, SubgoalVecEnv, low_level_observation_space
+from sb3_dipper.common.low_level import (
+    LevelLogger,
+    SACLowLevel,
+    SubgoalNormalizer,
+    SubgoalVecEnv,
+    low_level_observation_space,
+    sac_torch_save_params,
+)
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition, low_level_observation
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.common.validation import check_goal_observation_space
@@ -467,10 +474,7 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         return [*super()._excluded_save_params(), "low_level", "option_env", "_callback", "_option_metrics"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = ["lower.policy", "lower.actor.optimizer", "lower.critic.optimizer"]
-        if self.lower.ent_coef_optimizer is not None:
-            return [*state_dicts, "lower.ent_coef_optimizer"], ["lower.log_ent_coef"]
-        return state_dicts, ["lower.ent_coef_tensor"]
+        return sac_torch_save_params(self.lower, "lower")
 
     @property
     def replay_buffer(self) -> ReplayBuffer | None:

@@ -185,6 +185,14 @@ class LevelLogger:
         return getattr(self._logger, name)
 
 
+def sac_torch_save_params(sac: SAC, prefix: str) -> tuple[list[str], list[str]]:
+    """SB3's ``_get_torch_save_params`` of a SAC held as attribute ``prefix`` of an algorithm (state dicts, tensors)."""
+    state_dicts = [f"{prefix}.policy", f"{prefix}.actor.optimizer", f"{prefix}.critic.optimizer"]
+    if sac.ent_coef_optimizer is not None:
+        return [*state_dicts, f"{prefix}.ent_coef_optimizer"], [f"{prefix}.log_ent_coef"]
+    return state_dicts, [f"{prefix}.ent_coef_tensor"]
+
+
 def step_entropy_coefficient(sac: SAC, log_prob: th.Tensor) -> th.Tensor:
     """SAC's entropy coefficient for this gradient step: fixed, or after one step of its own loss when it is learned."""
     if sac.ent_coef_optimizer is None or sac.log_ent_coef is None:

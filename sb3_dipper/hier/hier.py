@@ -23,7 +23,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, has_finished_episode, sibling_path
-from sb3_dipper.common.low_level import LevelLogger
+from sb3_dipper.common.low_level import LevelLogger, sac_torch_save_params
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.hier.policies import MlpPolicy, MultiInputPolicy
@@ -297,10 +297,8 @@ class HIER(HierarchicalAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
-        high_state_dicts = ["higher.policy", "higher.actor.optimizer", "higher.critic.optimizer"]
-        if self.higher.ent_coef_optimizer is not None:
-            return [*high_state_dicts, "higher.ent_coef_optimizer", *state_dicts], ["higher.log_ent_coef", *variables]
-        return [*high_state_dicts, *state_dicts], ["higher.ent_coef_tensor", *variables]
+        high_state_dicts, high_variables = sac_torch_save_params(self.higher, "higher")
+        return [*high_state_dicts, *state_dicts], [*high_variables, *variables]
 
     def _save_high_level_data(self, path: str) -> None:
         self.higher.save_replay_buffer(sibling_path(path, ".higher.pkl"))

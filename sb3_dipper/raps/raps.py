@@ -23,6 +23,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_dipper.common.hierarchical import has_finished_episode
+from sb3_dipper.common.low_level import sac_torch_save_params
 from sb3_dipper.common.option_env import DictObs, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.hier.hier import HIER
@@ -197,10 +198,7 @@ class RAPS(HIER):
         return [*super()._excluded_save_params(), "lower"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
-        state_dicts = ["higher.policy", "higher.actor.optimizer", "higher.critic.optimizer"]
-        if self.higher.ent_coef_optimizer is not None:
-            return [*state_dicts, "higher.ent_coef_optimizer"], ["higher.log_ent_coef"]
-        return state_dicts, ["higher.ent_coef_tensor"]
+        return sac_torch_save_params(self.higher, "higher")
 
     @property
     def replay_buffer(self) -> ReplayBuffer | None:
