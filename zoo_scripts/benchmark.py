@@ -59,6 +59,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import safe_mean
+from stable_baselines3.common.vec_env import VecNormalize, sync_envs_normalization
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 
@@ -187,6 +188,8 @@ class PeriodicSuccess(BaseCallback):
         return True
 
     def evaluate(self) -> None:
+        # A model trained on a VecNormalize env is evaluated with the training statistics, frozen (as EvalCallback does).
+        sync_envs_normalization(self.training_env, self.eval_env)
         self.timesteps.append(self.num_timesteps)
         self.successes.append(episode_successes(self.model, self.eval_env, self.n_episodes))
         arrays: dict[str, Any] = dict(timesteps=np.array(self.timesteps), successes=np.array(self.successes))
@@ -236,13 +239,18 @@ def learning_run(
     directory.mkdir(parents=True, exist_ok=True)
     model, _, budget = make_model(algo, env_id, seed=seed, overrides=overrides)
     budget = n_timesteps or budget
-    eval_env = make_env(env_id, load_entry(algo, env_id), seed=seed + 10_000, n_envs=10)
+    eval_env = make_env(env_id, {**load_entry(algo, env_id), **(overrides or {})}, seed=seed + 10_000, n_envs=10)
+    if isinstance(eval_env, VecNormalize):
+        eval_env.training, eval_env.norm_reward = False, False
     callback = PeriodicSuccess(eval_env, eval_freq, eval_episodes, directory / "evaluations.npz")
     start = time.time()
     model.learn(budget, callback=callback)
     if not callback.timesteps or callback.timesteps[-1] < model.num_timesteps:
         callback.evaluate()
     seconds = time.time() - start
+    model.save(directory / "model.zip")
+    if isinstance(model.get_env(), VecNormalize):
+        model.get_env().save(str(directory / "vecnormalize.pkl"))  # type: ignore[union-attr]
     result = dict(
         algo=algo, variant=variant, overrides=overrides, env=env_id, seed=seed, steps=model.num_timesteps, seconds=seconds
     )
