@@ -43,7 +43,7 @@ from sb3_dipper.common.low_level import (
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition, low_level_observation
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
-from sb3_dipper.common.validation import check_goal_observation_space
+from sb3_dipper.common.validation import as_float, as_int, as_optional_int, check_goal_observation_space
 from sb3_dipper.envs.demos import default_demonstrations
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
@@ -139,8 +139,22 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         if env is not None:
             env = maybe_make_env(env, verbose)
             check_goal_observation_space(env.observation_space, algorithm)
-        if not 0.0 <= random_subgoal_prob <= 1.0:
-            raise ValueError(f"random_subgoal_prob must be in [0, 1], got {random_subgoal_prob}")
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        option_steps = as_int("option_steps", option_steps, 1)
+        buffer_size = as_int("buffer_size", buffer_size, 1)
+        learning_starts = as_int("learning_starts", learning_starts, 0)
+        batch_size = as_int("batch_size", batch_size, 1)
+        train_freq = as_int("train_freq", train_freq, 1, "the lower level trains every train_freq primitive steps")
+        gradient_steps = as_int("gradient_steps", gradient_steps, 0)
+        n_demos = as_int("n_demos", n_demos, 1)
+        max_episode_steps = as_optional_int("max_episode_steps", max_episode_steps, 1, "None reads the env's time limit")
+        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
+        tau = as_float("tau", tau, 0.0, 1.0, low_open=True)
+        gamma = as_float("gamma", gamma, 0.0, 1.0, low_open=True)
+        random_subgoal_prob = as_float("random_subgoal_prob", random_subgoal_prob, 0.0, 1.0)
+        demo_share = as_float("demo_share", demo_share, 0.0, 1.0)
+        bc_coef = as_float("bc_coef", bc_coef, 0.0, reason="it weighs a loss")
+        rl_coef = as_float("rl_coef", rl_coef, 0.0, reason="it weighs a loss")
         super().__init__(
             policy,
             env,
@@ -179,8 +193,6 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         self.low_normalizer: SubgoalNormalizer | None = None
         self._low_steps_since_train = 0
         self._rng = np.random.default_rng(seed)
-        if option_steps < 1:
-            raise ValueError(f"option_steps must be at least 1, got {option_steps}")
 
     # ---------------------------------------------------------------------------------------------------- set-up
 

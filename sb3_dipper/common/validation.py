@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -28,6 +29,15 @@ def check_goal_observation_space(observation_space: spaces.Space, algorithm: str
             )
         if not isinstance(space, spaces.Box) or len(space.shape) != 1:
             raise ValueError(f"{algorithm} needs 1-D Box spaces for every observation key, but {key!r} is {space}.")
+    achieved_shape = observation_space["achieved_goal"].shape
+    desired_shape = observation_space["desired_goal"].shape
+    if achieved_shape != desired_shape:
+        # compute_reward, HER relabelling and subgoals all put an achieved goal where a desired one goes.
+        raise ValueError(
+            f"{algorithm} needs achieved_goal and desired_goal of the same shape, but achieved_goal is {achieved_shape} "
+            f"and desired_goal is {desired_shape}. Make both the same quantity (for example the object position), "
+            "so that an achieved goal can stand in for a desired one."
+        )
 
 
 def sparse_goal_reached_fn(venv: VecEnv) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -66,3 +76,93 @@ def sparse_goal_reached_fn(venv: VecEnv) -> Callable[[np.ndarray, np.ndarray], n
         return reached.reshape(achieved.shape[:-1])
 
     return goal_reached
+
+
+def _interval(low: float, high: float, low_open: bool, high_open: bool) -> str:
+    if low == -math.inf and high == math.inf:
+        return ""
+    if high == math.inf:
+        return f" {'>' if low_open else '>='} {low:g}"
+    if low == -math.inf:
+        return f" {'<' if high_open else '<='} {high:g}"
+    return f" in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+
+
+def _number(name: str, value: Any, expected: str) -> float:
+    """``value`` as a float, for a setting that may arrive as a string from the zoo or a YAML file (``"1e-3"``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating, str)):
+        raise ValueError(f"{name} must be {expected}, got {value!r} ({type(value).__name__})")
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"{name} must be {expected}, got {value!r}") from None
+
+
+def as_int(name: str, value: Any, minimum: int, reason: str = "") -> int:
+    """An integer setting, converted and checked at construction.
+
+    Settings reach the constructors from the zoo's ``-params``, Optuna and YAML (``5e4``, ``!!float 5e4``, ``20.0``,
+    ``"20"``); numpy needs real ints, and its error would only come deep in training. Whole numbers of any of these
+    types become ints; anything else (``2.5``, ``"abc"``, ``True``) and values below ``minimum`` are refused.
+
+    :param name: the parameter's name, for the message
+    :param value: the value given
+    :param minimum: the smallest allowed value
+    :param reason: why (appended to the message)
+    """
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        integer = int(value)
+    else:
+        expected = f"a whole number (an integer >= {minimum})"
+        number = _number(name, value, expected)
+        if not number.is_integer():
+            raise ValueError(f"{name} must be {expected}, got {value!r}")
+        integer = int(number)
+    if integer < minimum:
+        raise ValueError(f"{name} must be at least {minimum}, got {value!r}{f' ({reason})' if reason else ''}")
+    return integer
+
+
+def as_optional_int(name: str, value: Any, minimum: int, reason: str = "") -> int | None:
+    """:func:`as_int` for a setting whose ``None`` means "the default" (for example, read from the env)."""
+    return None if value is None else as_int(name, value, minimum, reason)
+
+
+def as_train_freq(value: Any) -> int | tuple[int, str]:
+    """SB3's ``train_freq`` (``n`` steps, or ``(n, "step" | "episode")``) with ``n`` checked by :func:`as_int`."""
+    if isinstance(value, (tuple, list)) and len(value) == 2:
+        return as_int("train_freq", value[0], 1), value[1]
+    return as_int("train_freq", value, 1)
+
+
+def as_float(
+    name: str,
+    value: Any,
+    low: float = -math.inf,
+    high: float = math.inf,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    reason: str = "",
+) -> float:
+    """A real-valued setting, converted to float and refused unless finite and inside its interval.
+
+    :param name: the parameter's name, for the message
+    :param value: the value given
+    :param low: lower bound of the allowed interval
+    :param high: upper bound of the allowed interval
+    :param low_open: whether ``low`` itself is excluded
+    :param high_open: whether ``high`` itself is excluded
+    :param reason: why (appended to the message)
+    """
+    interval = _interval(low, high, low_open, high_open)
+    number = _number(name, value, f"a finite number{interval}")
+    inside = (low < number if low_open else low <= number) and (number < high if high_open else number <= high)
+    if not (math.isfinite(number) and inside):
+        raise ValueError(f"{name} must be a finite number{interval}, got {value!r}{f' ({reason})' if reason else ''}")
+    return number
+
+
+def as_optional_float(name: str, value: Any, low: float = -math.inf, high: float = math.inf, **kwargs: Any) -> float | None:
+    """:func:`as_float` for a setting whose ``None`` means "off" or "the default"."""
+    return None if value is None else as_float(name, value, low, high, **kwargs)

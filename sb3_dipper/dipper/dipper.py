@@ -35,7 +35,7 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_float, as_int, as_optional_float, sparse_goal_reached_fn
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
 
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
@@ -60,11 +60,17 @@ class DIPPER(HierarchicalAlgorithm):
     :param option_steps: K, primitive steps per subgoal
     :param subgoal_space: subgoal space (default: the env's declared one)
     :param beta: beta, the weight of the policy log-ratios in the DPO logit (Eq. 9)
-    :param value_reg_coef: lambda, the weight of the lower-value regulariser (0: DIPPER-No-V)
+    :param value_reg_coef: lambda, the weight of the lower-value regulariser of ``value_reg="paper"`` and
+        ``"reparam"`` (0: DIPPER-No-V)
     :param value_steps: m, lower critic gradient steps between ``V^L`` and ``V^L_m`` (``value_reg="paper"``)
     :param value_reg: how lambda enters: ``"paper"`` (Eq. 9: ``-lambda * sum_t (V^L - V^L_m)`` in the DPO logit),
-        ``"score"`` (the PIPER code: ``lambda * sum_t V^L(s_t, g_t)`` added to the preference score at labelling), or
-        ``"reparam"`` (``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss, a differentiable feasibility term)
+        ``"score"`` (the PIPER code: ``value_score_coef * sum_t V^L(s_t, g_t)`` added to the preference score at
+        labelling), or ``"reparam"`` (``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss, a differentiable
+        feasibility term)
+    :param value_score_coef: the weight of ``sum_t V^L(s_t, g_t)`` in the preference score when ``value_reg="score"``
+        (in place of lambda). Default: the PIPER code's ``q_reg`` scale, 1e-6. Each lower value is as low as
+        ``-1 / (1 - gamma)``, about -20, and the sum runs over the trajectory, so at lambda's 0.1 the critic, not the
+        primitive-in-the-loop count, would decide the labels; at 1e-6 the value only breaks ties
     :param n_preference_pairs: the label budget: pairs labelled over the whole run, spread over training
     :param pairs_per_batch: preference pairs per higher-level gradient step
     :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
@@ -125,6 +131,7 @@ class DIPPER(HierarchicalAlgorithm):
         value_reg_coef: float = 0.1,
         value_steps: int = 15,
         value_reg: str = "paper",
+        value_score_coef: float = 1e-6,
         n_preference_pairs: int = 10_000,
         pairs_per_batch: int = 64,
         hindsight_goal_prob: float = 0.8,
@@ -203,10 +210,25 @@ class DIPPER(HierarchicalAlgorithm):
             raise ValueError(f"Unknown value_reg {value_reg!r}: choose one of {VALUE_REGULARIZERS}")
         if not 0.0 <= hindsight_goal_prob <= 1.0:
             raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
+        beta = as_float("beta", beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected trajectories")
+        value_reg_coef = as_float("value_reg_coef", value_reg_coef, 0.0, reason="0 turns the value term off")
+        value_score_coef = as_float("value_score_coef", value_score_coef, 0.0, reason="0 turns the value score off")
+        value_steps = as_int("value_steps", value_steps, 0)
+        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
+        pairs_per_batch = as_int("pairs_per_batch", pairs_per_batch, 1)
+        high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
+        nll_coef = as_float("nll_coef", nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
+        planning_lookahead = as_int("planning_lookahead", planning_lookahead, 1)
+        planning_resolution = as_optional_float("planning_resolution", planning_resolution, 0.0, low_open=True)
+        planning_value_threshold = as_optional_float("planning_value_threshold", planning_value_threshold)
+        trajectory_buffer_size = as_int(
+            "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
+        )
         self.beta = beta
         self.value_reg_coef = value_reg_coef
         self.value_steps = value_steps
         self.value_reg = value_reg
+        self.value_score_coef = value_score_coef
         self.n_preference_pairs = n_preference_pairs
         self.pairs_per_batch = pairs_per_batch
         self.hindsight_goal_prob = hindsight_goal_prob
@@ -435,10 +457,10 @@ class DIPPER(HierarchicalAlgorithm):
             self._value_snapshot_updates = self.lower._n_updates
 
     def _pair_value_score(self, pairs: TrajectoryPairs) -> np.ndarray:
-        """PIPER's label-time term: ``lambda * sum_t V^L(s_t, g_t)`` for each trajectory, shape ``(2, B)``."""
+        """PIPER's label-time term: ``value_score_coef * sum_t V^L(s_t, g_t)`` for each trajectory, shape ``(2, B)``."""
         with th.no_grad():
             values = sac_state_value(self.lower, self._pair_low_obs(pairs, pairs.actions)).cpu().numpy()
-        return self.value_reg_coef * (values.reshape(pairs.mask.shape) * pairs.mask).sum(axis=-1)
+        return self.value_score_coef * (values.reshape(pairs.mask.shape) * pairs.mask).sum(axis=-1)
 
     def _reparameterised_low_value(self, pairs: TrajectoryPairs, observations: dict[str, th.Tensor]) -> th.Tensor:
         """``V^L(s, g(u))`` for ``u ~ pi^H(.|s, g*)`` (reparameterised, so it has a gradient), at the pairs' real steps."""
