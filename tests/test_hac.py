@@ -150,9 +150,9 @@ def test_an_option_stores_hindsight_actions_and_the_penalty_of_a_missed_tested_s
     model = two_env_model
     hand_option(model, tested=[True, True], dones=[False, False])
     rows = stored(model)
-    # The penalty (env 1's original subgoal, -K = -5, no bootstrap), then one hindsight action transition per env.
+    # The penalty (env 1's original subgoal, -T = -20 / 5 = -4, no bootstrap), then a hindsight action transition per env.
     np.testing.assert_allclose(rows["actions"], [[-1.0, 0.0], [0.5, 0.5], [0.2, -0.4]], atol=1e-6)
-    assert rows["rewards"].tolist() == [-5.0, -1.0, 0.0]
+    assert rows["rewards"].tolist() == [-4.0, -1.0, 0.0]
     assert rows["dones"].tolist() == [1.0, 0.0, 1.0]
     np.testing.assert_allclose(rows["goals"], [[1.0, -1.4], [3.0, 3.0], [1.0, -1.4]], atol=1e-6)
     assert list(model._option_metrics["tested_subgoal_missed"]) == [0.0, 1.0]
@@ -184,18 +184,33 @@ def test_the_episode_end_adds_hindsight_goal_transitions_of_the_whole_window():
     assert model._windows.open_envs() == []
 
 
-def test_targets_are_clipped_to_minus_k_and_zero_in_training(two_env_model):
+def test_targets_are_clipped_to_minus_t_and_zero_in_training(two_env_model):
     model = two_env_model
-    assert model.higher.target_q_bounds == (-5.0, 0.0)
+    assert model.higher.target_q_bounds == (-4.0, 0.0)  # T = 20 / 5
     sac = model.higher
     sac.set_logger(Logger(None, []))
-    for reward, done, expected in ((-100.0, 0.0, -5.0), (10.0, 0.0, 0.0), (-5.0, 1.0, -5.0)):
+    for reward, done, expected in ((-100.0, 0.0, -4.0), (10.0, 0.0, 0.0), (-5.0, 1.0, -4.0)):
         sac.replay_buffer.reset()
         obs = {"observation": np.zeros((1, 4)), "achieved_goal": np.zeros((1, 2)), "desired_goal": np.ones((1, 2))}
         for _ in range(16):
             sac.replay_buffer.add(obs, obs, np.zeros((1, 2)), np.array([reward]), np.array([done]), [{}])
         sac.train(gradient_steps=1, batch_size=16)
         assert sac.logger.name_to_value["train/target_q"] == pytest.approx(expected, abs=1e-6)
+
+
+@pytest.mark.parametrize(
+    "max_episode_steps, option_steps, high_steps",
+    [(200, 20, 10), (20, 2, 10)],  # the zoo's PointMazeFourRooms-v0 (K = 20 > T = 10), and K = 2 < T = 10
+)
+def test_the_higher_levels_penalty_and_critic_bound_use_its_horizon_t_not_k(max_episode_steps, option_steps, high_steps):
+    """HAC sizes a level's penalty and critic bound by that level's own horizon (``layer.py``, ``critic.py``)."""
+    maze = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=2, env_kwargs={"max_episode_steps": max_episode_steps})
+    model = tiny_hac(maze, option_steps=option_steps)
+    model._option_metrics = {"tested_subgoal_missed": deque()}
+    assert model.high_steps == high_steps and model.higher.target_q_bounds == (-high_steps, 0.0)
+    hand_option(model, tested=[True, True], dones=[False, False], option_steps=option_steps)
+    rows = stored(model)
+    assert rows["rewards"][0] == -high_steps and rows["dones"][0] == 1.0
 
 
 # ---------------------------------------------------------------------------------------------------- paper_compat
@@ -279,8 +294,9 @@ def subgoal_distance_from_option_start(model: HAC, env_kwargs: dict, n_episodes:
 def test_subgoal_testing_and_hindsight_actions_pull_subgoals_within_reach():
     """1,500 steps on the maze (goal in the start room): the proposed subgoals come within reach of the option's start,
     as HAC's hindsight actions and subgoal penalties teach (an option moves the ball about one cell, 1 m). Measured over
-    seeds 1-3: 1.40-1.44 m after training against 2.76-4.01 m untrained (ratios 0.51, 0.36, 0.43); with hindsight
-    actions and subgoal testing switched off the ratio stays at 1.13 (seed 1) and 0.77 (seed 2)."""
+    seeds 1-3 (K = 10, T = 4): 0.95-1.12 m after training against 2.76-4.01 m untrained (ratios 0.41, 0.24, 0.31); with
+    hindsight actions and subgoal testing switched off the ratio stayed at 1.13 (seed 1) and 0.77 (seed 2) (measured
+    when the higher level's bound was still [-K, 0])."""
     maze = dict(max_episode_steps=40, start_room="bottom_left", goal_room="bottom_left")
     model = HAC(
         "MultiInputPolicy",

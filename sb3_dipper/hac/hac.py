@@ -5,7 +5,8 @@ Two levels on the shared option layer. The higher level is a SAC (as in the DIPP
 in ``[-1, 1]^d`` that learns from HAC's three kinds of transitions (rules in :mod:`sb3_dipper.hac.hindsight`):
 hindsight actions, hindsight goals and subgoal-testing penalties. It keeps its own plain ``DictReplayBuffer``: SB3's
 ``HerReplayBuffer`` relabels "future" goals and keeps ``done``, while HAC relabels whole windows and recomputes
-``done`` (a reached goal ends bootstrapping). Its critic targets are clipped to ``[-K, 0]`` (HAC's ``critic.py``).
+``done`` (a reached goal ends bootstrapping). Its critic targets are clipped to ``[-T, 0]`` (HAC's ``critic.py``), ``T``
+(``high_steps``) being its horizon: the options of one base episode.
 
 The lower level is the shared SAC+HER on subgoals: it also gets hindsight goals, from SB3's HER ("future" goals within
 each K-step segment, where HAC relabels the lower window "episode"-style). Its targets are not clipped: HAC bounds a
@@ -19,8 +20,10 @@ Choices where the paper leaves room or our setting differs:
   relabelling every transition of the window (HAC's ``finalize_goal_replay``; 3 goals as in its root code).
 - Subgoal testing starts with learning (``learning_starts``): before it both levels act uniformly at random.
   Whether a subgoal is tested is drawn per env and per option; a tested env's lower level acts deterministically.
-- The penalty and the critic bound use ``K = option_steps`` (HAC uses one horizon ``H`` for every level; the DIPPER
-  tasks have ``K = T``).
+- HAC gives every level one horizon ``H`` (its attempts per goal) and bounds a level's critic to ``[-H, 0]`` and its
+  penalty for a missed subgoal to ``-H`` with that level's own ``H`` (``layer.py``, ``critic.py``). Here the levels'
+  horizons differ, so the higher level's bound and penalty use its horizon ``T = high_steps``, not the lower level's
+  ``K = option_steps`` (the DIPPER tasks have ``K = T``; ``PointMazeFourRooms-v0`` in our zoo has ``K = 20``, ``T = 10``).
 - SAC with target networks and an entropy bonus replaces HAC's DDPG without target networks.
 - A subgoal counts as reached if it is reached at the end of its option: the shared option layer always runs K steps,
   where HAC's lower level hands control back as soon as it reaches its subgoal.
@@ -50,7 +53,7 @@ from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.low_level import SACLowLevel, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_int, as_optional_int, sparse_goal_reached_fn
 from sb3_dipper.hac.hindsight import (
     future_goal_pairs,
     goal_rewards,
@@ -221,7 +224,7 @@ class HAC(HIER):
     - the hindsight action transition ``(s_t, u_t or p(s_{t+1}), r, s_{t+1}, g*)``, ``r = -1`` or 0 with ``done`` when
       ``g*`` is reached (Section 4.2);
     - with probability ``subgoal_test_prob`` the subgoal is tested: the lower level acts greedily and, if it misses,
-      ``(s_t, u_t, -K, s_{t+1}, g*)`` with ``done`` (Section 4.4);
+      ``(s_t, u_t, -T, s_{t+1}, g*)`` with ``done`` (Section 4.4; ``T``, the higher level's horizon, is ``high_steps``);
 
     and when the episode ends, hindsight goal transitions of the whole window (Section 4.3).
     ``paper_compat=True`` is the DIPPER authors' simplified HAC (their PIPER code, ``--hac=1``): every option is stored
@@ -233,7 +236,8 @@ class HAC(HIER):
     :param policy: the higher SAC's policy (``"MlpPolicy"`` or ``"MultiInputPolicy"``: SAC's ``MultiInputPolicy``)
     :param env: a goal env with a sparse reward
     :param learning_rate: learning rate of the higher SAC
-    :param option_steps: K, primitive steps per subgoal (also the subgoal penalty and the critic bound ``[-K, 0]``)
+    :param option_steps: K, primitive steps per subgoal; the higher level's horizon is ``T = ceil(episode length / K)``
+        options, which sets its subgoal penalty ``-T`` and its critic bound ``[-T, 0]``
     :param subgoal_space: subgoal space (default: the env's declared one)
     :param subgoal_test_prob: HAC's lambda, the probability that a proposed subgoal is tested
     :param n_hindsight_goals: goals relabelling each window (HAC, default 3), or "future" goals per transition
@@ -366,10 +370,8 @@ class HAC(HIER):
         )
         if not 0.0 <= subgoal_test_prob <= 1.0:
             raise ValueError(f"subgoal_test_prob must be in [0, 1], got {subgoal_test_prob}")
-        if n_hindsight_goals is not None and n_hindsight_goals < 0:
-            raise ValueError(f"n_hindsight_goals must be at least 0, got {n_hindsight_goals}")
-        if greedy_episode_interval < 1:
-            raise ValueError(f"greedy_episode_interval must be at least 1, got {greedy_episode_interval}")
+        n_hindsight_goals = as_optional_int("n_hindsight_goals", n_hindsight_goals, 0)
+        greedy_episode_interval = as_int("greedy_episode_interval", greedy_episode_interval, 1)
         self.subgoal_test_prob = subgoal_test_prob
         self.paper_compat = paper_compat
         self.n_hindsight_goals = n_hindsight_goals if n_hindsight_goals is not None else (4 if paper_compat else 3)
@@ -381,10 +383,10 @@ class HAC(HIER):
 
     @property
     def target_q_bounds(self) -> tuple[float, float]:
-        """HAC: ``[-K, 0]``; the DIPPER authors: ``[-1 / (1 - gamma), 0]``."""
+        """HAC: ``[-T, 0]``, the higher level's horizon; the DIPPER authors: ``[-1 / (1 - gamma), 0]``."""
         if self.paper_compat:
             return -1.0 / (1.0 - self.high_gamma), 0.0
-        return -float(self.option_steps), 0.0
+        return -float(self.high_steps), 0.0
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None
@@ -485,11 +487,12 @@ class HAC(HIER):
         else:
             # Section 4.2: the subgoal actually reached replaces a missed one.
             streams = hindsight_actions(high_actions, space.to_unit(achieved), subgoal_reached)[None]
-            # Section 4.4: a tested subgoal the greedy lower level missed in its K steps is penalised, without bootstrap.
+            # Section 4.4: a tested subgoal the greedy lower level missed in its K steps is penalised, without bootstrap,
+            # with the proposing level's lowest value -T.
             completed = np.array([info["option_steps"] == self.option_steps for info in infos])
             penalized = penalized_subgoals(greedy, subgoal_reached, completed)
             if penalized.any():
-                penalty_reward, penalty_done = penalty_transitions(int(penalized.sum()), self.option_steps)
+                penalty_reward, penalty_done = penalty_transitions(int(penalized.sum()), self.high_steps)
                 self._add_transitions(
                     _rows(start_obs, penalized),
                     high_actions[penalized],

@@ -10,7 +10,8 @@ when it is, and a reached goal ends bootstrapping (``done``, HAC's ``finished``:
 - Hindsight goal (Section 4.3): after the window, some achieved goals ``ag_{i+1}`` become goals of *every* transition of
   the window (the official code loops over all of them, an "episode" strategy), with reward and ``done`` recomputed.
 - Subgoal testing (Section 4.4): a tested subgoal that the greedy lower level missed within its ``K`` steps gives the
-  proposing level the transition ``(s_t, u_t, -K, s_{t+1})`` with ``done`` (no bootstrap).
+  proposing level the transition ``(s_t, u_t, -T, s_{t+1})`` with ``done`` (no bootstrap): ``-T``, the proposing level's
+  horizon, is the lowest value its critic (bounded to ``[-T, 0]``) can take.
 - The DIPPER authors' simplified HAC (``paper_compat``): every option is stored twice, with the proposed and with the
   reached subgoal as action, both relabelled with HER's "future" goals, and every option of a greedy episode once more
   with the proposed subgoal and reward ``-T``.
