@@ -26,6 +26,7 @@ from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, has_finished_e
 from sb3_dipper.common.low_level import LevelLogger, sac_torch_save_params
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.validation import as_float, as_int
 from sb3_dipper.hier.policies import MlpPolicy, MultiInputPolicy
 
 SelfHIER = TypeVar("SelfHIER", bound="HIER")
@@ -209,6 +210,11 @@ class HIER(HierarchicalAlgorithm):
             seed=seed,
             device=device,
         )
+        high_buffer_size = as_int("high_buffer_size", high_buffer_size, 1)
+        high_batch_size = as_int("high_batch_size", high_batch_size, 1)
+        high_gamma = as_float("high_gamma", high_gamma, 0.0, 1.0, low_open=True)
+        high_tau = as_float("high_tau", high_tau, 0.0, 1.0, low_open=True)
+        high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
         self.high_buffer_size = high_buffer_size
         self.high_batch_size = high_batch_size
         self.high_gamma = high_gamma

@@ -59,7 +59,7 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_float, as_int, sparse_goal_reached_fn
 from sb3_dipper.hier.hier import HIER
 from sb3_dipper.piper.policies import RewardModel
 
@@ -314,8 +314,13 @@ class PIPER(HIER):
         )
         if not 0.0 <= hindsight_goal_prob <= 1.0:
             raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
-        if reward_batch_size < 1:
-            raise ValueError(f"reward_batch_size must be at least 1 pair, got {reward_batch_size}")
+        reward_batch_size = as_int("reward_batch_size", reward_batch_size, 1, "pairs per reward-model update")
+        reward_gradient_steps = as_int("reward_gradient_steps", reward_gradient_steps, 0)
+        value_reg_coef = as_float("value_reg_coef", value_reg_coef, 0.0, reason="0 turns the value score off")
+        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
+        trajectory_buffer_size = as_int(
+            "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
+        )
         self.value_reg_coef = value_reg_coef
         self.n_preference_pairs = n_preference_pairs
         self.hindsight_goal_prob = hindsight_goal_prob
