@@ -68,7 +68,7 @@ from torch import nn
 
 from sb3_dipper.common.demonstrations import Demonstrations, load_demonstrations
 from sb3_dipper.common.hierarchical import sibling_path
-from sb3_dipper.common.validation import check_goal_observation_space
+from sb3_dipper.common.validation import as_float, as_int, as_train_freq, check_goal_observation_space
 from sb3_dipper.dac.policies import Discriminator, MlpPolicy, MultiInputPolicy
 from sb3_dipper.envs.demos import default_demonstrations
 
@@ -398,8 +398,18 @@ class DAC(SAC):
             check_goal_observation_space(env.observation_space, "DAC")
         if demo_path is None:
             raise ValueError('DAC imitates demonstrations: pass demo_path="auto", an npz file or a Minari dataset directory')
-        if n_demos < 1:
-            raise ValueError(f"DAC needs at least one demonstration episode, got n_demos={n_demos}")
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        n_demos = as_int("n_demos", n_demos, 1, "DAC needs at least one demonstration episode")
+        buffer_size = as_int("buffer_size", buffer_size, 1)
+        learning_starts = as_int("learning_starts", learning_starts, 0)
+        batch_size = as_int("batch_size", batch_size, 1)
+        tau = as_float("tau", tau, 0.0, 1.0, low_open=True)
+        gamma = as_float("gamma", gamma, 0.0, 1.0, low_open=True)
+        train_freq = as_train_freq(train_freq)
+        gradient_steps = as_int("gradient_steps", gradient_steps, -1, "-1: as many as environment steps collected")
+        target_update_interval = as_int("target_update_interval", target_update_interval, 1)
+        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
+        gradient_penalty_coef = as_float("gradient_penalty_coef", gradient_penalty_coef, 0.0, reason="it weighs a loss")
         if not 0.0 <= expert_goal_relabel_prob <= 1.0:
             raise ValueError(f"expert_goal_relabel_prob must be in [0, 1], got {expert_goal_relabel_prob}")
         super().__init__(
