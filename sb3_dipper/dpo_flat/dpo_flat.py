@@ -49,7 +49,14 @@ from sb3_dipper.common.preferences import (
     save_preference_data,
 )
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import check_goal_observation_space, sparse_goal_reached_fn
+from sb3_dipper.common.validation import (
+    as_float,
+    as_int,
+    as_optional_int,
+    as_train_freq,
+    check_goal_observation_space,
+    sparse_goal_reached_fn,
+)
 from sb3_dipper.dipper.policies import DIPPERPolicy
 from sb3_dipper.dpo_flat.policies import MlpPolicy, MultiInputPolicy
 
@@ -197,8 +204,18 @@ class DPOFlat(OffPolicyAlgorithm):
         if env is not None:
             env = maybe_make_env(env, verbose)
             check_goal_observation_space(env.observation_space, "DPOFlat")
-        if segment_length < 1:
-            raise ValueError(f"segment_length must be at least 1, got {segment_length}")
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        segment_length = as_int("segment_length", segment_length, 1)
+        beta = as_float("beta", beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected segments")
+        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
+        pairs_per_batch = as_int("pairs_per_batch", pairs_per_batch, 1)
+        nll_coef = as_float("nll_coef", nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
+        trajectory_buffer_size = as_int("trajectory_buffer_size", trajectory_buffer_size, 1)
+        learning_starts = as_int("learning_starts", learning_starts, 0)
+        train_freq = as_train_freq(train_freq)
+        gradient_steps = as_int("gradient_steps", gradient_steps, -1, "-1: as many as environment steps collected")
+        max_episode_steps = as_optional_int("max_episode_steps", max_episode_steps, 1, "None reads the env's time limit")
+        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
         for name, probability in (("hindsight_goal_prob", hindsight_goal_prob), ("random_action_prob", random_action_prob)):
             if not 0.0 <= probability <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {probability}")

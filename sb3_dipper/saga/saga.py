@@ -43,6 +43,7 @@ from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.preferences import relabel_hindsight_actions
 from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.validation import as_float
 from sb3_dipper.hier.hier import HIER
 from sb3_dipper.saga.policies import SubgoalDiscriminator
 
@@ -230,8 +231,7 @@ class SAGA(HIER):
             device=device,
             _init_setup_model=False,
         )
-        if adversarial_coef < 0.0:
-            raise ValueError(f"adversarial_coef must be non-negative (it weighs a loss), got {adversarial_coef}")
+        adversarial_coef = as_float("adversarial_coef", adversarial_coef, 0.0, reason="it weighs a loss; 0 turns it off")
         self.adversarial_coef = adversarial_coef
         self.state_conditioned = state_conditioned
         self.discriminator_learning_rate = discriminator_learning_rate
