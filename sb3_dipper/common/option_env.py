@@ -69,13 +69,19 @@ def low_level_observation(observation: DictObs, subgoals: np.ndarray, subgoal_sp
     }
 
 
-def check_finite(observation: DictObs) -> None:
-    """Refuse NaN or infinite observations with an error that names the key."""
+def check_finite(observation: DictObs, env_indices: np.ndarray | None = None, source: str = "Observation") -> None:
+    """Refuse NaN or infinite observations with an error that names the key and the envs.
+
+    :param observation: one row per env
+    :param env_indices: the env index of each row (default: row ``i`` is env ``i``)
+    :param source: what the observations are, for the message
+    """
     for key, value in observation.items():
         if not np.all(np.isfinite(value)):
-            bad_envs = np.flatnonzero(~np.all(np.isfinite(value.reshape(value.shape[0], -1)), axis=1))
+            bad_rows = np.flatnonzero(~np.all(np.isfinite(value.reshape(value.shape[0], -1)), axis=1))
+            bad_envs = bad_rows if env_indices is None else np.asarray(env_indices)[bad_rows]
             raise ValueError(
-                f"Observation key {key!r} holds NaN or infinite values (env indices {bad_envs.tolist()}). "
+                f"{source} key {key!r} holds NaN or infinite values (env indices {bad_envs.tolist()}). "
                 "Fix the environment, or wrap it in stable_baselines3.common.vec_env.VecCheckNan to find the source."
             )
 
@@ -151,9 +157,13 @@ class OptionVecEnv(VecEnvWrapper):
             next_original = self._original(obs)  # type: ignore[arg-type]
             check_finite(next_original)
             reached = {key: value.copy() for key, value in next_original.items()}
-            for env_idx in np.flatnonzero(dones):
+            ended = np.flatnonzero(dones)
+            for env_idx in ended:
                 for key, value in self._original_terminal(infos[env_idx]).items():
                     reached[key][env_idx] = value
+            # The terminal observations replace the checked ones of ended envs: they go to the buffers too.
+            terminal = {key: value[ended] for key, value in reached.items()}
+            check_finite(terminal, ended, "Terminal observation (info['terminal_observation'])")
             next_low_obs = low_level_observation(reached, subgoals, space)
             option_ends = bool(dones.any()) or step == self.option_steps - 1
             keep_going = True

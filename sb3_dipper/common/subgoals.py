@@ -136,8 +136,20 @@ def resolve_subgoal_space(venv: VecEnv, subgoal_space: SubgoalSpace | None = Non
     default = _default_from_goal_space(goal_space, threshold)
     if default is not None:
         return default
+    # Say which of the two things the default needs is missing: each has its own fix.
+    missing = []
+    if not (np.all(np.isfinite(goal_space.low)) and np.all(np.isfinite(goal_space.high))):
+        missing.append(
+            f"its achieved_goal space is unbounded (low={goal_space.low}, high={goal_space.high}), so give the "
+            "subgoal box's low and high (the region the agent's achieved goals can reach)"
+        )
+    if threshold is None:
+        missing.append(
+            "the env has no `distance_threshold` attribute, so give the threshold under which a subgoal counts as "
+            "reached (or give the env a `distance_threshold`)"
+        )
     raise ValueError(
-        f"No subgoal space is known for env {env_id!r}: its achieved_goal bounds are not finite. "
+        f"No subgoal space is known for env {env_id!r}: {'; and '.join(missing)}. "
         "Pass `subgoal_space=SubgoalSpace(low, high, threshold)` to the algorithm, give the env a `subgoal_space` "
         "attribute, or call `sb3_dipper.register_subgoal_space(env_id, factory)`."
     )
