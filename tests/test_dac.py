@@ -15,6 +15,7 @@ from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.dac import DAC
 from sb3_dipper.dac.dac import (
     ABSORBING_KEY,
+    ExpertTransitions,
     absorb_terminations,
     adversarial_reward,
     discriminator_loss,
@@ -171,6 +172,36 @@ def test_expert_goals_are_relabelled_with_goals_achieved_later_in_the_episode():
     np.testing.assert_array_equal(actions[:, 0], np.where(first_episode, 0.5, -0.5))
     own, _ = expert.sample(50, relabel_prob=0.0, rng=rng)
     assert set(own["desired_goal"][:, 0]) <= {2.0, 20.0}
+
+
+@pytest.mark.parametrize(
+    "replay_buffer_class, replay_buffer_kwargs, expert_goal_relabel_prob, expected",
+    [
+        (None, None, None, 0.0),  # no HER: the expert keeps its own goals, as the replay rows do
+        (HerReplayBuffer, None, None, 0.8),  # HER's n_sampled_goal = 4 relabels 4 rows in 5
+        (HerReplayBuffer, dict(n_sampled_goal=1), None, 0.5),
+        (None, None, 0.3, 0.3),  # an explicit probability wins
+    ],
+)
+def test_expert_goals_are_relabelled_as_often_as_the_replay_buffer_relabels(
+    replay_buffer_class, replay_buffer_kwargs, expert_goal_relabel_prob, expected, monkeypatch
+):
+    """Relabelled expert goals against unrelabelled replay goals would let D tell them apart by goal consistency alone."""
+    used = []
+    sample = ExpertTransitions.sample
+
+    def recording_sample(self, batch_size, relabel_prob, rng):
+        used.append(relabel_prob)
+        return sample(self, batch_size, relabel_prob, rng)
+
+    monkeypatch.setattr(ExpertTransitions, "sample", recording_sample)
+    overrides = dict(replay_buffer_class=replay_buffer_class, replay_buffer_kwargs=replay_buffer_kwargs)
+    if expert_goal_relabel_prob is not None:  # otherwise the class default
+        overrides["expert_goal_relabel_prob"] = expert_goal_relabel_prob
+    model = DAC("MultiInputPolicy", short_maze(), **{**TINY, **overrides})
+    model.learn(60)
+    assert len(used) == 20 and used == pytest.approx([expected] * 20)  # one discriminator step per step after the 40th
+    assert model.effective_expert_goal_relabel_prob == pytest.approx(expected)
 
 
 # ---------------------------------------------------------------------------------------------------- runs and saving
@@ -379,7 +410,7 @@ def test_the_discriminator_learns_to_tell_the_demonstration_from_the_policy():
     model = DAC("MultiInputPolicy", env, **{**TINY, "learning_starts": 100, "batch_size": 64, "buffer_size": 5000})
     model.learn(600)
     # Held-out data: the expert's transitions under goals relabelled afresh, and the policy's own new transitions.
-    expert_obs, expert_actions = model.expert.sample(500, 0.8, np.random.default_rng(123))
+    expert_obs, expert_actions = model.expert.sample(500, model.effective_expert_goal_relabel_prob, np.random.default_rng(123))
     policy_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", seed=99, env_kwargs={"max_episode_steps": 50})
     observations, actions = [], []
     obs = policy_env.reset()

@@ -23,9 +23,10 @@ What makes DAC, and where it is here:
 Adaptations to goal-conditioned tasks (documented in the class):
 
 - ``D(s, a, g)`` sees the desired goal (``goal_conditioned_discriminator``), and expert goals are relabelled with goals
-  the demonstration achieved later (probability ``expert_goal_relabel_prob``, as HER relabels the replay side;
-  goal-conditioned GAIL of Ding et al. 2019). Without it, one demonstration has one goal and ``D`` could tell expert
-  from policy by the goal alone.
+  the demonstration achieved later as HER relabels the replay side (goal-conditioned GAIL of Ding et al. 2019): by
+  default with the ``HerReplayBuffer``'s own probability, and not at all without HER, so that both sides are relabelled
+  alike; otherwise ``D`` could tell expert from policy by the goals alone (one demonstration has one goal;
+  relabelled expert rows, whose goal the episode reaches, against unrelabelled replay rows, whose goal is rarely reached).
 - The absorbing indicator is a fourth observation key, ``"absorbing"``, so ``VecNormalize`` leaves it alone; the absorbing
   state keeps its achieved and desired goals, which HER needs to relabel the final transition. The tasks of this package
   never terminate (episodes end at the time limit), so there ``absorbing_states=True`` changes nothing: the indicator
@@ -57,7 +58,7 @@ import numpy as np
 import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
-from stable_baselines3 import SAC
+from stable_baselines3 import SAC, HerReplayBuffer
 from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
@@ -332,7 +333,8 @@ class DAC(SAC):
         end at the time limit)
     :param gradient_penalty_coef: weight of the gradient penalty (DAC: 10)
     :param expert_goal_relabel_prob: probability that an expert row's goal is replaced by one its episode achieved
-        later (0: the demonstration's own goal)
+        later (0: the demonstration's own goal); ``None`` matches the replay buffer: a ``HerReplayBuffer``'s relabel
+        probability (``her_ratio``), 0 for any other buffer
     :param discriminator_learning_rate: learning rate of the discriminator's Adam
     :param discriminator_net_arch: hidden layers of the discriminator (default: DAC's ``[256, 256]``)
     :param paper_compat: the DIPPER authors' variant (least-squares discriminator, raw output as reward, ReLU layers, no
@@ -376,7 +378,7 @@ class DAC(SAC):
         goal_conditioned_discriminator: bool = True,
         absorbing_states: bool = True,
         gradient_penalty_coef: float = 10.0,
-        expert_goal_relabel_prob: float = 0.8,
+        expert_goal_relabel_prob: float | None = None,
         discriminator_learning_rate: float = 1e-3,
         discriminator_net_arch: list[int] | None = None,
         paper_compat: bool = False,
@@ -410,7 +412,7 @@ class DAC(SAC):
         target_update_interval = as_int("target_update_interval", target_update_interval, 1)
         stats_window_size = as_int("stats_window_size", stats_window_size, 1)
         gradient_penalty_coef = as_float("gradient_penalty_coef", gradient_penalty_coef, 0.0, reason="it weighs a loss")
-        if not 0.0 <= expert_goal_relabel_prob <= 1.0:
+        if expert_goal_relabel_prob is not None and not 0.0 <= expert_goal_relabel_prob <= 1.0:
             raise ValueError(f"expert_goal_relabel_prob must be in [0, 1], got {expert_goal_relabel_prob}")
         super().__init__(
             policy,  # type: ignore[arg-type]
@@ -685,10 +687,17 @@ class DAC(SAC):
         outputs = self.discriminator(self._discriminator_inputs(observations, actions))
         return outputs if self.paper_compat else adversarial_reward(outputs)
 
+    @property
+    def effective_expert_goal_relabel_prob(self) -> float:
+        """``expert_goal_relabel_prob`` if set, else the replay buffer's: HER's relabel probability, 0 without HER."""
+        if self.expert_goal_relabel_prob is not None:
+            return self.expert_goal_relabel_prob
+        return self.replay_buffer.her_ratio if isinstance(self.replay_buffer, HerReplayBuffer) else 0.0
+
     def _update_discriminator(self, batch: DictReplayBufferSamples, logs: dict[str, list[float]]) -> None:
         """One discriminator step on the batch's ``(s, a, g)`` against as many expert rows (goals relabelled)."""
         assert self.expert is not None
-        expert_obs, expert_actions = self.expert.sample(len(batch.actions), self.expert_goal_relabel_prob, self._rng)
+        expert_obs, expert_actions = self.expert.sample(len(batch.actions), self.effective_expert_goal_relabel_prob, self._rng)
         expert_actions_tensor = th.as_tensor(expert_actions, device=self.device)
         expert_inputs = self._discriminator_inputs(self._tensor_obs(expert_obs), expert_actions_tensor)
         policy_inputs = self._discriminator_inputs(batch.observations, batch.actions)  # type: ignore[arg-type]
