@@ -5,7 +5,8 @@ primitive and its arguments per decision). The selector picks a primitive (:func
 into equal bins, one per primitive in library order), the arguments are mapped to the library's argument box, and the
 chosen primitive runs for the option's K primitive steps, recomputing its action from each new observation.
 
-Libraries follow the DIPPER authors' RAPS baseline (a much smaller library than the paper's twelve primitives):
+The maze and Fetch libraries follow the DIPPER authors' RAPS baseline (much smaller than the RAPS paper's twelve
+primitives); the kitchen's does not (below):
 
 ====================================================  ========================================================================
 env id                                                primitives (in selector order)
@@ -14,7 +15,7 @@ env id                                                primitives (in selector or
 ``FetchPush-v4``, ``FetchPickAndPlace-v4``            ``close_gripper``, ``reach``, ``open_gripper`` (authors' selector signs)
 ``FetchPushFixed-v0``, ``FetchPickAndPlaceFixed-v0``  the same three
 ``FetchReach-v4``, ``FetchFourRoomMaze-v0``           ``reach`` (the authors' maze: goTo only)
-``FrankaKitchenMicrowaveBurner-v0``                   ``joint_target`` (the 9 robot joints)
+``FrankaKitchenMicrowaveBurner-v0``                   ``joint_target`` (the 9 robot joints; our own controller)
 any other env                                         ``reach``: P-control of ``observation[:d]`` with ``action[:d]``
 ====================================================  ========================================================================
 
@@ -22,6 +23,12 @@ any other env                                         ``reach``: P-control of ``
 gripper (the observation's first 3 entries) and the gripper entry of the action stays 0, which holds the fingers
 (Fetch's finger actuators take targets relative to the current opening); ``open_gripper``/``close_gripper`` hold the
 arm and drive the fingers. Other envs declare theirs with :func:`register_primitive_library`.
+
+The kitchen's ``joint_target`` is a joint-target controller of our own (proportional joint velocities toward a 9-dim
+joint-space target). It follows neither the DIPPER paper, which says its kitchen baseline uses the action primitives of
+RAPS (its library of parameterised end-effector primitives), nor the authors' code (``Utsavz/piper``,
+``--raps=1``), which uses the first 9 dimensions of the higher level's subgoal directly as the action at every step,
+without a controller. Kitchen results of this RAPS are therefore not the paper's RAPS baseline.
 """
 
 from __future__ import annotations
@@ -107,6 +114,8 @@ class Gripper:
 @dataclass(frozen=True)
 class JointTarget:
     """Proportional joint-velocity control toward a joint-space target (Franka kitchen: ``observation[:9]`` are joints).
+
+    Our own kitchen primitive, neither the RAPS paper's nor the DIPPER authors' (see the module docstring).
 
     :param joints: number of controlled joints (the first entries of observation and action)
     :param gain: proportional gain on the joint error, per unit of normalised velocity action (the kitchen scales an

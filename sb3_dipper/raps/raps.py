@@ -6,10 +6,12 @@ The higher level is HIER's: an SB3 SAC with ``HerReplayBuffer`` trained with the
 each option. Its action is ``[arguments..., selector]``: the selector picks a primitive of the env's library (see
 :mod:`sb3_dipper.raps.primitives`), which runs for ``option_steps`` primitive steps. There is no learned lower level.
 
-Differences from the paper, as in the DIPPER authors' baseline: a small library (reach, open/close gripper, joint
-targets) in place of RAPS's twelve, one selector dimension cut into equal bins in place of one logit per primitive,
-SAC+HER on states in place of Dreamer on images. Our bins give each primitive the same share of random exploration
-(the authors' Fetch selector gives reach only ``|s| < 0.1``).
+Differences from the paper, as in the DIPPER authors' baseline: a small library (reach, open/close gripper) in place of
+RAPS's twelve, one selector dimension cut into equal bins in place of one logit per primitive, SAC+HER on states in
+place of Dreamer on images. Our bins give each primitive the same share of random exploration (the authors' Fetch
+selector gives reach only ``|s| < 0.1``). On the kitchen the primitive is a joint-target controller of our own, which is
+neither the paper's description (RAPS's own primitives) nor the authors' code (the first 9 dimensions of the subgoal
+used directly as the action): see :mod:`sb3_dipper.raps.primitives`.
 """
 
 from __future__ import annotations
