@@ -6,7 +6,10 @@ TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 # Tests are single-threaded; one pytest worker per core.
 TEST_WORKERS ?= 2
+# Two install stamps: `make demo` needs only the library with the zoo and plots; tests and lint add the test tools
+# (pytest, ruff, mypy, ray, minari), so a demo machine never installs them.
 STAMP := $(VENV)/.sb3-dipper-installed
+TEST_STAMP := $(VENV)/.sb3-dipper-tests-installed
 export MUJOCO_GL ?= egl
 
 .PHONY: demo test test-slow lint format venv clean
@@ -17,23 +20,27 @@ $(STAMP): setup.py
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet "$(TORCH_SPEC)"
-	$(PY) -m pip install --quiet -e ".[zoo,plots,tests]"
+	$(PY) -m pip install --quiet -e ".[zoo,plots]"
 	touch $(STAMP)
+
+$(TEST_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[zoo,plots,tests]"
+	touch $(TEST_STAMP)
 
 demo: $(STAMP)
 	$(PY) zoo_scripts/demo.py --output-dir demo_output
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --durations=15
 
-test-slow: $(STAMP)
+test-slow: $(TEST_STAMP)
 	$(PY) -m pytest -q -m slow --durations=15
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(PY) -m ruff check sb3_dipper tests zoo_scripts setup.py
 	$(PY) -m mypy sb3_dipper zoo_scripts
 
-format: $(STAMP)
+format: $(TEST_STAMP)
 	$(PY) -m ruff check --fix sb3_dipper tests zoo_scripts setup.py
 	$(PY) -m ruff format sb3_dipper tests zoo_scripts setup.py
 
