@@ -1,0 +1,282 @@
+"""Settings out of range, integer settings given as floats or strings, malformed goal spaces and non-finite terminal
+observations are refused at construction (or where the observation enters), with the parameter and its range named."""
+
+import inspect
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_dipper import DAC, DIPPER, HIER, PIPER, RAPS
+from sb3_dipper.common.option_env import OptionVecEnv
+from sb3_dipper.common.preferences import TrajectoryPairs
+from sb3_dipper.envs import PointMazeReachController
+from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
+
+NAN, INF = math.nan, math.inf
+POSITIVE = "must be a finite number > 0"
+NON_NEGATIVE = "must be a finite number >= 0"
+DISCOUNT = r"must be a finite number in \(0, 1\]"
+PROBABILITY = r"must be a finite number in \[0, 1\]"
+
+# (parameter, bad value, what the message says after the parameter's name, the classes if not all that have it)
+BAD_SETTINGS = [
+    ("beta", 0.0, POSITIVE, None),
+    ("beta", -0.1, POSITIVE, None),
+    ("beta", NAN, POSITIVE, None),
+    ("pairs_per_batch", 0, "must be at least 1", None),
+    ("batch_size", 0, "must be at least 1", None),
+    ("high_batch_size", 0, "must be at least 1", None),
+    ("reward_batch_size", 0, "must be at least 1", None),
+    ("trajectory_buffer_size", 0, "must be at least", None),
+    ("trajectory_buffer_size", 1, r"must be at least 2.*two stored trajectories", [DIPPER, PIPER]),
+    ("value_steps", -1, "must be at least 0", None),
+    ("train_freq", 0, "must be at least 1", None),
+    ("option_steps", 2.5, r"must be a whole number \(an integer >= 1\)", None),
+    ("max_episode_steps", 0, "must be at least 1", None),
+    ("gamma", 0.0, DISCOUNT, None),
+    ("gamma", 1.5, DISCOUNT, None),
+    ("gamma", NAN, DISCOUNT, None),
+    ("high_gamma", 1.5, DISCOUNT, None),
+    ("tau", 0.0, DISCOUNT, None),
+    ("high_tau", 2.0, DISCOUNT, None),
+    ("buffer_size", 0, "must be at least 1", None),
+    ("high_buffer_size", 0, "must be at least 1", None),
+    ("nll_coef", -1.0, NON_NEGATIVE, None),
+    ("planning_lookahead", 0, "must be at least 1", None),
+    ("planning_resolution", 0.0, POSITIVE, None),
+    ("planning_value_threshold", NAN, "must be a finite number", None),
+    ("gradient_penalty_coef", -10.0, NON_NEGATIVE, None),
+    ("adversarial_coef", NAN, NON_NEGATIVE, None),
+    ("value_reg_coef", -0.1, NON_NEGATIVE, None),
+    ("value_score_coef", -1e-6, NON_NEGATIVE, None),
+    ("value_score_coef", INF, NON_NEGATIVE, None),
+    ("n_preference_pairs", 0, "must be at least 1", None),
+    ("learning_starts", -1, "must be at least 0", None),
+    ("gradient_steps", -2, "must be at least", None),
+    ("high_gradient_steps", -1, "must be at least 0", None),
+    ("reward_gradient_steps", -1, "must be at least 0", None),
+    ("segment_length", 0, "must be at least 1", None),
+    ("n_demos", 0, "must be at least 1", None),
+    ("greedy_episode_interval", 0, "must be at least 1", None),
+    ("n_hindsight_goals", -1, "must be at least 0", None),
+    ("target_update_interval", 0, "must be at least 1", None),
+    ("stats_window_size", 0, "must be at least 1", None),
+    ("random_subgoal_prob", NAN, PROBABILITY, None),
+    ("demo_share", 1.5, PROBABILITY, None),
+    ("bc_coef", -1.0, NON_NEGATIVE, None),
+    ("rl_coef", -1.0, NON_NEGATIVE, None),
+]
+
+# Every integer-valued constructor setting; the zoo and YAML may hand any of them over as a float or a string.
+INTEGER_SETTINGS = (
+    "option_steps",
+    "n_preference_pairs",
+    "pairs_per_batch",
+    "batch_size",
+    "high_batch_size",
+    "reward_batch_size",
+    "buffer_size",
+    "high_buffer_size",
+    "trajectory_buffer_size",
+    "value_steps",
+    "learning_starts",
+    "train_freq",
+    "gradient_steps",
+    "high_gradient_steps",
+    "reward_gradient_steps",
+    "max_episode_steps",
+    "n_demos",
+    "segment_length",
+    "planning_lookahead",
+    "greedy_episode_interval",
+    "n_hindsight_goals",
+    "target_update_interval",
+    "stats_window_size",
+)
+
+
+def constructor_parameters(model_class) -> dict[str, inspect.Parameter]:
+    return dict(inspect.signature(model_class.__init__).parameters)
+
+
+def bad_setting_cases():
+    for name, value, message, classes in BAD_SETTINGS:
+        having = [cls for cls in ALL_ALGORITHMS if name in constructor_parameters(cls)]
+        assert having, f"no algorithm has a parameter {name!r}"
+        for cls in classes or having:
+            yield pytest.param(cls, name, value, message, id=f"{cls.__name__}-{name}={value}")
+
+
+@pytest.fixture(scope="module")
+def env():
+    # Refused constructions never step the env, so one serves the whole module.
+    venv = short_maze()
+    yield venv
+    venv.close()
+
+
+@pytest.mark.parametrize(("model_class", "name", "value", "message"), list(bad_setting_cases()))
+def test_a_setting_out_of_range_is_refused_at_construction(env, model_class, name, value, message):
+    with pytest.raises(ValueError, match=f"{name} {message}"):
+        any_tiny_model(model_class, env, **{name: value})
+
+
+def stored_setting(model, name: str):
+    """A setting as the model keeps it (SB3 keeps some under a private name, ``train_freq`` as a ``TrainFreq``)."""
+    value = getattr(model, name) if hasattr(model, name) else getattr(model, f"_{name}")
+    return value.frequency if name == "train_freq" and not isinstance(value, int) else value
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_integer_settings_given_as_whole_floats_become_ints(env, model_class):
+    reference = any_tiny_model(model_class, env)
+    names = [name for name in INTEGER_SETTINGS if name in constructor_parameters(model_class)]
+    given = {name: float(stored_setting(reference, name)) for name in names}
+    model = any_tiny_model(model_class, env, **given)
+    for name in names:
+        assert type(stored_setting(model, name)) is int and stored_setting(model, name) == given[name], name
+
+
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, RAPS])
+def test_integer_settings_given_as_strings_become_ints(env, model_class):
+    model = any_tiny_model(model_class, env, option_steps="5", learning_starts="40")
+    assert (model.option_steps, model.learning_starts) == (5, 40)
+
+
+@pytest.mark.parametrize("value", [2.5, "abc", True, None])
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_a_non_integer_for_an_integer_setting_is_refused_at_once(env, model_class, value):
+    with pytest.raises(ValueError, match=r"learning_starts must be a whole number \(an integer >= 0\), got"):
+        any_tiny_model(model_class, env, learning_starts=value)
+
+
+def test_float_settings_from_the_zoo_train_past_learning_starts():
+    """The reported case: ``-params n_preference_pairs:5e4 option_steps:20.0`` crashed in numpy once training began."""
+    env = short_maze()
+    model = tiny_model(DIPPER, env, option_steps=5.0, n_preference_pairs=2e2, pairs_per_batch=8.0, trajectory_buffer_size=5e1)
+    model.learn(80)
+    assert model.num_timesteps == 80 and len(model.preferences) > 0
+
+
+# ---------------------------------------------------------------------------------------------------- goal spaces
+
+
+class GoalEnv(gym.Env):
+    """A goal env whose goal spaces and threshold a test chooses."""
+
+    action_space = spaces.Box(-1, 1, (2,))
+
+    def __init__(self, achieved_goal: spaces.Box, desired_goal: spaces.Box, distance_threshold: float | None = None):
+        self.observation_space = spaces.Dict(
+            {"observation": spaces.Box(-1, 1, (4,)), "achieved_goal": achieved_goal, "desired_goal": desired_goal}
+        )
+        if distance_threshold is not None:
+            self.distance_threshold = distance_threshold
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_achieved_and_desired_goals_of_different_shapes_are_refused(model_class):
+    env = GoalEnv(spaces.Box(-1, 1, (2,)), spaces.Box(-1, 1, (3,)), distance_threshold=0.1)
+    with pytest.raises(ValueError, match=r"same shape, but achieved_goal is \(2,\) and desired_goal is \(3,\)"):
+        model_class("MultiInputPolicy", env)
+
+
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, RAPS])
+def test_a_bounded_goal_space_without_distance_threshold_says_the_threshold_is_missing(model_class):
+    env = GoalEnv(spaces.Box(-1, 1, (2,)), spaces.Box(-1, 1, (2,)))
+    with pytest.raises(ValueError, match="No subgoal space is known") as error:
+        model_class("MultiInputPolicy", env)
+    message = str(error.value)
+    assert "no `distance_threshold` attribute" in message and "unbounded" not in message
+    assert "subgoal_space=SubgoalSpace(low, high, threshold)" in message and "register_subgoal_space" in message
+
+
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, RAPS])
+def test_an_unbounded_goal_space_with_distance_threshold_says_it_is_unbounded(model_class):
+    env = GoalEnv(spaces.Box(-np.inf, np.inf, (2,)), spaces.Box(-np.inf, np.inf, (2,)), distance_threshold=0.05)
+    with pytest.raises(ValueError, match="No subgoal space is known") as error:
+        model_class("MultiInputPolicy", env)
+    message = str(error.value)
+    assert "achieved_goal space is unbounded" in message and "distance_threshold" not in message
+    assert "subgoal_space=SubgoalSpace(low, high, threshold)" in message and "register_subgoal_space" in message
+
+
+# ---------------------------------------------------------------------------------------------------- observations
+
+
+class NaNAtEpisodeEnd(gym.Wrapper):
+    """The last observation of each episode (SB3's ``info["terminal_observation"]``) holds a NaN."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if terminated or truncated:
+            obs = dict(obs, observation=np.full_like(obs["observation"], np.nan))
+        return obs, reward, terminated, truncated, info
+
+
+def test_a_nan_terminal_observation_is_refused_with_its_key_and_env_index():
+    def make(nan_at_end: bool):
+        def thunk():
+            env = gym.make("PointMazeFourRooms-v0", max_episode_steps=8)
+            return NaNAtEpisodeEnd(env) if nan_at_end else env
+
+        return thunk
+
+    venv = DummyVecEnv([make(False), make(True)])
+    venv.seed(0)
+    option_env = OptionVecEnv(venv, venv.get_attr("subgoal_space", indices=[0])[0], 10, PointMazeReachController())
+    option_env.reset()
+    # The episodes end at the 8th step of the option; env 1's next observation (after its reset) is finite.
+    with pytest.raises(ValueError, match=r"info\['terminal_observation'\]\) key 'observation' holds NaN.*env indices \[1\]"):
+        option_env.step(np.zeros((2, 2), np.float32))
+
+
+# ---------------------------------------------------------------------------------------------------- DIPPER's value score
+
+
+def random_pairs(model, n_pairs: int = 4) -> TrajectoryPairs:
+    rng = np.random.default_rng(0)
+    steps = model.high_steps
+    observations = {
+        key: rng.uniform(-1, 1, size=(2, n_pairs, steps, *space.shape)).astype(np.float32)
+        for key, space in model.observation_space.spaces.items()
+    }
+    actions = rng.uniform(-1, 1, size=(2, n_pairs, steps, model.subgoal_space.dim)).astype(np.float32)
+    return TrajectoryPairs(
+        observations=observations,
+        actions=actions,
+        reached_actions=actions,
+        next_achieved_goals=observations["achieved_goal"],
+        mask=np.ones((2, n_pairs, steps), dtype=bool),
+        labels=np.full(n_pairs, 0.5),
+    )
+
+
+def test_the_score_value_term_has_its_own_coefficient_at_pipers_scale(env):
+    model = tiny_model(DIPPER, env, value_reg="score", value_reg_coef=0.1)
+    assert model.value_score_coef == 1e-6 and model._labeler.value_score == model._pair_value_score
+    pairs = random_pairs(model)
+    th.manual_seed(0)  # the lower value is taken at a sampled lower action
+    score = model._pair_value_score(pairs)
+    model.value_score_coef = 1.0
+    th.manual_seed(0)
+    summed_values = model._pair_value_score(pairs)
+    assert np.abs(summed_values).max() > 0.0
+    # value_reg_coef (0.1, the paper's lambda) plays no part: the sum of lower values is weighed by 1e-6.
+    np.testing.assert_allclose(score, 1e-6 * summed_values, rtol=1e-5)
+
+
+def test_dac_keeps_sb3s_minus_one_gradient_steps(env):
+    """SB3's ``gradient_steps=-1`` (as many as steps collected) stays allowed where SB3 runs the loop."""
+    assert any_tiny_model(DAC, env, gradient_steps=-1).gradient_steps == -1
+
+
+def test_hier_refuses_no_updates_for_the_lower_level(env):
+    """The option loop has no "-1": a negative count would silently skip every lower update."""
+    with pytest.raises(ValueError, match="gradient_steps must be at least 0, got -1"):
+        any_tiny_model(HIER, env, gradient_steps=-1)
