@@ -5,7 +5,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from sb3_dipper.envs import fetch, kitchen
+from sb3_dipper.envs import fetch, kitchen, robotics
 from sb3_dipper.envs.point_maze import PointMazeExpert, PointMazeFourRoomsEnv, PointMazeReachController
 
 # env id -> factory(env) of a scripted expert with reset() and act(observation) (see sb3_dipper.common.demonstrations)
@@ -26,6 +26,7 @@ def register_envs() -> None:
         )
     fetch.register_fetch_envs()
     kitchen.register_kitchen_envs()
+    robotics.register_robotics_envs()
 
 
 __all__ = ["EXPERTS", "PointMazeExpert", "PointMazeFourRoomsEnv", "PointMazeReachController", "register_envs"]
