@@ -11,7 +11,18 @@ import pytest
 import yaml
 from optuna.trial import TrialState
 
-from sb3_dipper.zoo import SAMPLERS, ZOO_ALGORITHMS, _with_default_conf_file, hyperparams_dir
+from sb3_dipper import HIER
+from sb3_dipper.zoo import (
+    SAMPLERS,
+    ZOO_ALGORITHMS,
+    CSVProgressCallback,
+    claim_run_folder,
+    hyperparams_dir,
+    keep_params_without_value_term,
+    main,
+    zoo_argv,
+)
+from tests.conftest import short_maze, tiny_model
 from zoo_scripts.configs import ALGORITHMS, ZOO_KEYS, load_entry
 
 ENV_ID = "PointMazeFourRooms-v0"
@@ -88,14 +99,98 @@ def test_every_zoo_algorithm_has_a_hyperparameter_file():
     assert set(ZOO_ALGORITHMS) <= {path.stem for path in YAML_FILES}
 
 
-def test_an_env_without_an_entry_trains_with_the_default_entry():
-    argv = _with_default_conf_file(["train", "--algo", "dipper", "--env", "FetchReach-v4"])
-    conf_file = Path(argv[argv.index("--conf-file") + 1])
-    assert yaml.safe_load(conf_file.read_text()) == {
-        "FetchReach-v4": yaml.safe_load((hyperparams_dir() / "dipper.yml").read_text())["default"]
-    }
-    conf_file.unlink()
-    assert _with_default_conf_file(["train", "--algo", "dipper", "--env", ENV_ID, "-conf", "mine.yml"])[-1] == "mine.yml"
+@pytest.mark.parametrize(("argv", "exit_code"), [([], 2), (["--help"], 0), (["-h"], 0), (["trian"], 2)])
+def test_the_command_line_prints_its_usage(argv, exit_code, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["sb3-dipper-zoo", *argv])
+    with pytest.raises(SystemExit) as exited:
+        main()
+    assert exited.value.code == exit_code
+    printed = capsys.readouterr()
+    assert "usage: sb3-dipper-zoo" in printed.out + printed.err
+    if exit_code == 0:
+        assert all(command in printed.out for command in ("train", "enjoy", "record_video", "COMMAND --help"))
+
+
+@pytest.mark.parametrize("algo_flag", [["--algo", "dipper"], ["--algo=dipper"], ["--alg", "dipper"]])
+def test_train_reads_our_hyperparameter_file_whichever_way_algo_is_spelt(algo_flag):
+    # FetchReach-v4 has no entry of its own: rl-zoo3 falls back to the file's `default` entry, no copy is written.
+    argv = zoo_argv("train", [*algo_flag, "--env", "FetchReach-v4"])
+    assert argv[-2:] == ["--conf-file", str(hyperparams_dir() / "dipper.yml")]
+    assert "default" in yaml.safe_load((hyperparams_dir() / "dipper.yml").read_text())
+
+
+def test_a_conf_file_the_user_gives_is_kept():
+    for flag in (["-conf", "mine.yml"], ["--conf-file=mine.yml"]):
+        argv = zoo_argv("train", ["--algo", "dipper", "--env", ENV_ID, *flag])
+        assert "--conf-file" not in argv[-2:] and argv[-1].endswith("mine.yml")
+    assert zoo_argv("enjoy", ["--algo", "dipper", "--env", ENV_ID]) == ["--algo", "dipper", "--env", ENV_ID]
+    plot_flags = ["--algo", "dipper", "-e", "sb3_dipper:A-v0", "sb3_dipper:B-v0", "-f", "logs"]
+    assert zoo_argv("plot_train", plot_flags) == plot_flags
+
+
+def test_a_module_prefixed_env_id_is_imported_and_passed_on_plain():
+    argv = zoo_argv("enjoy", ["--algo", "dipper", "--env=sb3_dipper:PointMazeFourRooms-v0", "-f", "logs"])
+    assert argv[-2:] == ["--env", ENV_ID]
+    with pytest.raises(ModuleNotFoundError, match="--env no_such_module:X-v0"):
+        zoo_argv("train", ["--algo", "dipper", "--env", "no_such_module:X-v0"])
+
+
+def test_runs_sharing_a_log_folder_each_claim_their_own_run_folder(tmp_path):
+    (tmp_path / "dipper" / f"{ENV_ID}_1").mkdir(parents=True)
+    log_path = str(tmp_path / "dipper")
+    claimed = [claim_run_folder(log_path, ENV_ID, run_id=1) for _ in range(2)]
+    assert claimed == [str(tmp_path / "dipper" / f"{ENV_ID}_{run_id}") for run_id in (2, 3)]
+    assert all(Path(path).is_dir() for path in claimed)
+
+
+def test_rl_zoo_train_claims_each_run_folder_when_it_creates_it(tmp_path):
+    # Two experiment managers built before either creates its folder (two workers started together) pick the same
+    # run id; the one register() installs in rl-zoo3's train still gives each its own folder.
+    script = f"""
+import argparse, rl_zoo3.train
+from sb3_dipper.zoo import register
+register()
+managers = [rl_zoo3.train.ExperimentManager(argparse.Namespace(), "dipper", "{ENV_ID}", "logs") for _ in range(2)]
+for manager in managers:
+    manager.create_log_folder()
+print(*(manager.params_path for manager in managers))
+"""
+    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    params_paths = result.stdout.split()[-2:]
+    assert params_paths == [f"logs/dipper/{ENV_ID}_{run_id}/{ENV_ID}" for run_id in (1, 2)]
+    assert all((tmp_path / path).is_dir() for path in params_paths)
+
+
+def test_progress_csv_is_never_shared_between_runs(tmp_path):
+    env = short_maze(monitor_dir=str(tmp_path))
+    (tmp_path / "progress.csv").write_text("another run's rows\n")
+    with pytest.raises(FileExistsError, match=r"progress\.csv already exists"):
+        tiny_model(HIER, env).learn(10, callback=CSVProgressCallback())
+    assert (tmp_path / "progress.csv").read_text() == "another run's rows\n"
+    env.close()
+
+
+def test_dipper_nov_is_tuned_without_the_lower_value_term():
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for _ in range(20):
+        trial = study.ask()
+        assert SAMPLERS["dipper_nov"](trial, 2, 1, {})["value_reg_coef"] == 0.0
+        assert "value_reg_coef" not in trial.params
+    # A stored trial, even one of a DIPPER study, trains DIPPER-No-V with lambda = 0.
+    assert keep_params_without_value_term({"value_reg_coef": 0.1, "beta": 0.2}) == {"value_reg_coef": 0.0, "beta": 0.2}
+
+
+def test_train_on_an_upstream_goal_env_without_an_entry_of_its_own(tmp_path):
+    trained = zoo(
+        "train", "--algo=dipper", "--env=gymnasium_robotics:FetchReach-v4", "-n", "200", "--seed", "0", "-f", "logs",
+        "--eval-freq", "-1", "-params", *TINY_PARAMS["dipper"], cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    assert f"Loading hyperparameters from: {hyperparams_dir() / 'dipper.yml'}" in trained.stdout
+    assert "Using 'default' hyperparameters" in trained.stdout
+    run_dir = tmp_path / "logs" / "dipper" / "FetchReach-v4_1"
+    assert (run_dir / "FetchReach-v4.zip").exists() and (run_dir / "progress.csv").exists()
 
 
 @pytest.mark.parametrize("algo", sorted(TINY_PARAMS))
@@ -140,7 +235,7 @@ def optimize_args(algo: str, storage: str, log_folder: str, n_trials: int = 1) -
 
 def test_two_tuning_workers_share_a_journal_file_study(tmp_path):
     env = {**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    # Each worker has its own log folder: started together, they would otherwise pick the same run folder.
+    # Each worker has its own log folder: rl-zoo3 names a tuning report after the second it is written in.
     command = [sys.executable, "-m", "sb3_dipper.zoo"]
     storage_path = str(tmp_path / "study.log")
     workers = [
