@@ -12,6 +12,8 @@ npz schema (one row per step, episodes concatenated in order):
 - ``actions`` ``(N, action_dim)``, ``rewards`` ``(N,)``, ``successes`` ``(N,)`` (``info["is_success"]`` after the step)
 - ``episode_lengths`` ``(E,)``: lengths of the episodes, summing to N
 - ``env_id`` (a string, as a 0-d array)
+
+Files are written under a temporary name and renamed into place, and read without pickle; every error names the file.
 """
 
 from __future__ import annotations
@@ -23,6 +25,9 @@ from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
+
+from sb3_dipper.common.files import read_npz, save_npz
 
 OBSERVATION_KEYS = ("observation", "achieved_goal", "desired_goal")
 
@@ -46,6 +51,8 @@ class Demonstrations:
     successes: np.ndarray
     episode_lengths: np.ndarray
     env_id: str = ""
+    # Where the episodes come from (a file, for messages); not saved.
+    source: str = ""
 
     def __len__(self) -> int:
         return int(self.actions.shape[0])
@@ -59,9 +66,15 @@ class Demonstrations:
         return np.concatenate([[0], np.cumsum(self.episode_lengths)[:-1]]).astype(np.int64)
 
     def first_episodes(self, n_episodes: int) -> Demonstrations:
-        """The first ``n_episodes`` episodes."""
+        """The first ``n_episodes`` episodes (the algorithms' ``n_demos``), from 1 to all of them."""
+        where = self.source or "the demonstrations"
+        if n_episodes < 1:
+            raise ValueError(f"n_demos must be at least 1 (demonstration episodes to use from {where}), got {n_episodes}")
         if n_episodes > self.n_episodes:
-            raise ValueError(f"Asked for {n_episodes} demonstrations but the file holds {self.n_episodes} episodes")
+            raise ValueError(
+                f"Asked for {n_episodes} demonstrations but the file holds {self.n_episodes} episodes ({where}): choose "
+                f"n_demos between 1 and {self.n_episodes}, or record more (sb3-dipper-demos --n-episodes {n_episodes})"
+            )
         steps = int(self.episode_lengths[:n_episodes].sum())
         return Demonstrations(
             observations={key: value[:steps] for key, value in self.observations.items()},
@@ -71,9 +84,38 @@ class Demonstrations:
             successes=self.successes[:steps],
             episode_lengths=self.episode_lengths[:n_episodes],
             env_id=self.env_id,
+            source=self.source,
         )
 
+    def check_spaces(self, observation_space: spaces.Space, action_space: spaces.Space) -> None:
+        """Refuse demonstrations whose observations or actions do not fit the env's spaces (recorded on another env?).
+
+        Unchecked, they would fail at the first update with a tensor-size error that names neither file nor env.
+        """
+        assert isinstance(observation_space, spaces.Dict), "goal envs have Dict observations"
+        where = self.source or "the demonstrations"
+        recorded_on = f" (the file says {self.env_id})" if self.env_id else ""
+        fix = (
+            f"were they recorded on another env{recorded_on}? Pass demonstrations of this env as demo_path "
+            "(sb3-dipper-demos --env <env id> --out demos.npz records them)."
+        )
+        missing = [key for key in observation_space.spaces if key not in self.observations]
+        if missing:
+            raise ValueError(f"{where} has no {missing} observations, which the env has: {fix}")
+        for key, space in observation_space.spaces.items():
+            for found in (self.observations[key].shape[1:], self.next_observations[key].shape[1:]):
+                if found != space.shape:
+                    raise ValueError(
+                        f"The demonstrations' {key} has shape {found} but the env's has {space.shape} ({where}): {fix}"
+                    )
+        if self.actions.shape[1:] != action_space.shape:
+            raise ValueError(
+                f"The demonstrations' actions have shape {self.actions.shape[1:]} but the env's have "
+                f"{action_space.shape} ({where}): {fix}"
+            )
+
     def save(self, path: str | Path) -> None:
+        """Write the episodes to an npz file (schema: see the module docstring), atomically."""
         arrays: dict[str, np.ndarray] = {f"observations/{key}": value for key, value in self.observations.items()}
         arrays.update({f"next_observations/{key}": value for key, value in self.next_observations.items()})
         arrays.update(
@@ -83,7 +125,7 @@ class Demonstrations:
             episode_lengths=self.episode_lengths,
             env_id=np.array(self.env_id),
         )
-        np.savez_compressed(path, **arrays)  # type: ignore[arg-type]
+        save_npz(path, arrays)
 
 
 def collect_demonstrations(
@@ -120,6 +162,7 @@ def collect_demonstrations(
         successes=np.concatenate([e["successes"] for e in episodes]).astype(np.float32),
         episode_lengths=np.array([len(e["actions"]) for e in episodes], dtype=np.int64),
         env_id=env_id,
+        source=f"the scripted expert of {env_id}",
     )
 
 
@@ -143,24 +186,35 @@ def _run_episode(env: gym.Env, expert: ScriptedExpert, seed: int) -> dict[str, A
 
 
 def load_demonstrations(path: str | Path, n_episodes: int | None = None) -> Demonstrations:
-    """Read demonstrations from our npz file or from a Minari dataset directory (needs ``pip install minari``)."""
+    """Read demonstrations from our npz file or from a Minari dataset directory (needs ``pip install minari``).
+
+    :param path: the npz file or Minari directory
+    :param n_episodes: keep the first ``n_episodes`` (from 1 to all; default: all)
+    """
     path = Path(path)
     demonstrations = _load_minari(path) if path.is_dir() else _load_npz(path)
     return demonstrations if n_episodes is None else demonstrations.first_episodes(n_episodes)
 
 
 def _load_npz(path: Path) -> Demonstrations:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-    except ValueError as error:
-        raise ValueError(f"Malformed demonstration file {path}: {error}") from error
+    arrays = read_npz(
+        path,
+        "demonstration file",
+        "demo_path takes an npz file written by sb3-dipper-demos (or Demonstrations.save), a Minari dataset directory "
+        'or "auto".',
+    )
     required = ["actions", "rewards", "successes", "episode_lengths"] + [
         f"{group}/{key}" for group in ("observations", "next_observations") for key in OBSERVATION_KEYS
     ]
     missing = [key for key in required if key not in arrays]
     if missing:
         raise ValueError(f"Malformed demonstration file {path}: missing {missing} (schema: sb3_dipper.common.demonstrations)")
+    for key in required:
+        if arrays[key].dtype.kind not in "biuf" or arrays[key].ndim == 0:
+            raise ValueError(
+                f"Malformed demonstration file {path}: {key} must be an array of numbers, got {arrays[key].dtype} "
+                f"of shape {arrays[key].shape}"
+            )
     n_steps = arrays["actions"].shape[0]
     lengths = arrays["episode_lengths"]
     if lengths.ndim != 1 or lengths.sum() != n_steps or np.any(lengths < 1):
@@ -178,6 +232,7 @@ def _load_npz(path: Path) -> Demonstrations:
         successes=arrays["successes"].astype(np.float32),
         episode_lengths=lengths.astype(np.int64),
         env_id=str(arrays.get("env_id", "")),
+        source=str(path),
     )
 
 
@@ -207,4 +262,5 @@ def _load_minari(path: Path) -> Demonstrations:
         ),
         episode_lengths=np.array([len(e.actions) for e in episodes], dtype=np.int64),
         env_id=str(dataset.env_spec.id if dataset.env_spec is not None else ""),
+        source=str(path),
     )

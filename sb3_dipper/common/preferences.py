@@ -14,6 +14,7 @@ trajectory buffer, is saved as npz (read without pickle), and can be replaced by
 
 from __future__ import annotations
 
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -21,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from sb3_dipper.common.files import read_npz, save_npz
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+from sb3_dipper.common.validation import GOAL_KEYS
 
 # Label at most this many new pairs per training round, so labelling never stalls a round.
 MAX_NEW_PAIRS_PER_ROUND = 256
@@ -221,37 +224,81 @@ class PreferenceDataset:
         return arrays
 
     def save(self, path: str | Path) -> None:
-        """Write the labelled pairs to an npz file (schema: see :meth:`load`)."""
-        np.savez_compressed(path, **self.to_arrays())  # type: ignore[arg-type]
+        """Write the labelled pairs to an npz file (schema: see :meth:`load`), atomically."""
+        save_npz(path, self.to_arrays())
 
     @classmethod
-    def load(cls, path: str | Path, capacity: int | None = None) -> PreferenceDataset:
+    def load(cls, path: str | Path, capacity: int | None = None, shapes: PairShapes | None = None) -> PreferenceDataset:
         """Read a preference file written by :meth:`save` (or by hand, following the same schema).
 
         Schema: ``labels (N,)`` in {0, 0.5, 1}; ``mask (2, N, T)``; ``actions``, ``reached_actions`` ``(2, N, T, d)``;
-        ``next_achieved_goals (2, N, T, goal_dim)``; ``observations/<key> (2, N, T, ...)`` for every observation key,
-        with the pair's goal in ``observations/desired_goal``; optional ``capacity`` (the label budget).
+        ``next_achieved_goals (2, N, T, goal_dim)``; ``observations/<key> (2, N, T, ...)`` for every observation key
+        (at least ``observation``, ``achieved_goal`` and ``desired_goal``, which holds the pair's goal); optional
+        ``capacity`` (the label budget). Values must be finite.
+
+        :param path: the npz file
+        :param capacity: the label budget (default: the file's); pairs beyond it are dropped, with a warning
+        :param shapes: the model's pair shapes (:meth:`PairShapes.of`), to check the file against
         """
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except ValueError as error:
-            raise ValueError(f"Malformed preference file {path}: {error}") from error
-        return cls.from_arrays(arrays, capacity, str(path))
+        arrays = read_npz(path, "preference file")
+        return cls.from_arrays(arrays, capacity, str(path), shapes)
 
     @classmethod
     def from_arrays(
-        cls, arrays: dict[str, np.ndarray], capacity: int | None = None, source: str = "arrays"
+        cls,
+        arrays: dict[str, np.ndarray],
+        capacity: int | None = None,
+        source: str = "arrays",
+        shapes: PairShapes | None = None,
+        capacity_name: str = "capacity",
     ) -> PreferenceDataset:
-        """Build a dataset from :meth:`to_arrays` output, checking every array's shape."""
+        """Build a dataset from :meth:`to_arrays` output, checking every array (and, given ``shapes``, the model's).
+
+        :param arrays: the named arrays
+        :param capacity: the label budget (default: the stored one); pairs beyond it are dropped, with a warning
+        :param source: where the arrays come from, for messages
+        :param shapes: the shapes the pairs must have
+        :param capacity_name: the parameter that sets ``capacity``, named in the warning about dropped pairs
+        """
         arrays = dict(arrays)
-        stored_capacity = int(arrays.pop("capacity", np.array(0)))
+        stored_capacity = arrays.pop("capacity", np.array(0))
+        if stored_capacity.shape != () or stored_capacity.dtype.kind not in "iu" or stored_capacity < 0:
+            raise ValueError(f"Malformed preference file {source}: capacity must be one integer >= 0, got {stored_capacity}")
         if not arrays:
-            return cls(capacity or max(stored_capacity, 1))
-        pairs = _pairs_from_arrays(arrays, source)
-        dataset = cls(capacity or max(stored_capacity, len(pairs)))
+            return cls(capacity or max(int(stored_capacity), 1))
+        pairs = _pairs_from_arrays(arrays, source, shapes)
+        dataset = cls(capacity or max(int(stored_capacity), len(pairs)))
+        if len(pairs) > dataset.capacity:
+            warnings.warn(
+                f"{source} holds {len(pairs)} labelled pairs but {capacity_name}={dataset.capacity}: kept the first "
+                f"{dataset.capacity} and dropped {len(pairs) - dataset.capacity}. Raise {capacity_name} to "
+                f"{len(pairs)} or more to keep them all."
+            )
         dataset.add(pairs)
         return dataset
+
+
+@dataclass(frozen=True)
+class PairShapes:
+    """What every step of a model's pairs looks like, to check pairs read from a file against the model.
+
+    :param observations: the shape of each observation key (one step)
+    :param action_dim: d, the size of ``actions`` and ``reached_actions``
+    :param length: T, the steps of each trajectory (or segment) of a pair
+    """
+
+    observations: dict[str, tuple[int, ...]]
+    action_dim: int
+    length: int
+
+    @classmethod
+    def of(cls, trajectory_buffer: TrajectoryBuffer, length: int | None = None) -> PairShapes:
+        """The pairs cut from ``trajectory_buffer``: whole trajectories, or segments of ``length`` steps."""
+        return cls(
+            observations={key: value.shape[2:] for key, value in trajectory_buffer.observations.items()},
+            action_dim=int(trajectory_buffer.actions.shape[-1]),
+            length=length or trajectory_buffer.max_length,
+        )
 
 
 def pairs_due(dataset: PreferenceDataset, label_budget: int, num_timesteps: int, total_timesteps: int) -> int:
@@ -267,22 +314,98 @@ def flat_pair_observations(pairs: TrajectoryPairs) -> dict[str, np.ndarray]:
 
 
 def save_preference_data(path: str | Path, trajectory_buffer: TrajectoryBuffer, dataset: PreferenceDataset) -> None:
-    """The stored trajectories and labelled pairs of a checkpoint, as one npz file (read back without pickle)."""
+    """The stored trajectories and labelled pairs of a checkpoint, as one npz file (read back without pickle).
+
+    The file is written under a temporary name and renamed into place, so it is never found half-written.
+    """
     arrays = {f"trajectories/{key}": value for key, value in trajectory_buffer.state_dict().items()}
     arrays.update({f"preferences/{key}": value for key, value in dataset.to_arrays().items()})
-    np.savez_compressed(path, **arrays)  # type: ignore[arg-type]
+    save_npz(path, arrays)
 
 
-def load_preference_data(path: str | Path, trajectory_buffer: TrajectoryBuffer, label_budget: int) -> PreferenceDataset:
-    """Restore what :func:`save_preference_data` wrote: fills ``trajectory_buffer`` and returns the labelled pairs."""
-    with np.load(path, allow_pickle=False) as data:
-        arrays = {key: data[key] for key in data.files}
-    trajectory_buffer.load_state_dict(_with_prefix(arrays, "trajectories/"))
-    return PreferenceDataset.from_arrays(_with_prefix(arrays, "preferences/"), label_budget, f"the checkpoint {path}")
+def read_preference_data(
+    path: str | Path, trajectory_buffer: TrajectoryBuffer, label_budget: int, pair_length: int | None = None
+) -> tuple[dict[str, np.ndarray], PreferenceDataset]:
+    """Read and check what :func:`save_preference_data` wrote, changing nothing.
+
+    :param path: the npz file
+    :param trajectory_buffer: the model's buffer, which the stored trajectories must fit
+    :param label_budget: the model's ``n_preference_pairs``; stored pairs beyond it are dropped, with a warning
+    :param pair_length: T of the model's pairs (default: whole trajectories, ``trajectory_buffer.max_length``)
+    :return: the trajectory buffer's state (for ``trajectory_buffer.load_state_dict``) and the labelled pairs
+    """
+    fix = (
+        "save_replay_buffer writes it beside the replay buffer: keep the two together, or load the files of another "
+        "complete checkpoint."
+    )
+    arrays = read_npz(path, "preference file", fix)
+    trajectories = _checked_trajectory_state(_with_prefix(arrays, "trajectories/"), trajectory_buffer, str(path))
+    dataset = PreferenceDataset.from_arrays(
+        _with_prefix(arrays, "preferences/"),
+        label_budget,
+        str(path),
+        PairShapes.of(trajectory_buffer, pair_length),
+        capacity_name="n_preference_pairs",
+    )
+    return trajectories, dataset
+
+
+def load_preference_data(
+    path: str | Path, trajectory_buffer: TrajectoryBuffer, label_budget: int, pair_length: int | None = None
+) -> PreferenceDataset:
+    """Restore what :func:`save_preference_data` wrote: fills ``trajectory_buffer`` and returns the labelled pairs.
+
+    All or nothing: on any error ``trajectory_buffer`` is unchanged (arguments as in :func:`read_preference_data`).
+    """
+    trajectories, dataset = read_preference_data(path, trajectory_buffer, label_budget, pair_length)
+    trajectory_buffer.load_state_dict(trajectories)
+    return dataset
 
 
 def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
     return {key.removeprefix(prefix): value for key, value in arrays.items() if key.startswith(prefix)}
+
+
+def _checked_trajectory_state(
+    arrays: dict[str, np.ndarray], trajectory_buffer: TrajectoryBuffer, source: str
+) -> dict[str, np.ndarray]:
+    """The stored trajectories, if they fit ``trajectory_buffer`` exactly (same keys, shapes and capacity)."""
+    expected = trajectory_buffer.state_dict()
+    missing = sorted(set(expected) - set(arrays))
+    unknown = sorted(set(arrays) - set(expected))
+    if missing:
+        raise ValueError(f"Malformed preference file {source}: missing {[f'trajectories/{key}' for key in missing]}")
+    if unknown:
+        raise ValueError(
+            f"Malformed preference file {source}: {[f'trajectories/{key}' for key in unknown]} are not in the model's "
+            "trajectory buffer: was the file saved by a model of another env?"
+        )
+    for key, wanted in expected.items():
+        found = arrays[key]
+        if key != "position" and found.shape[:1] != wanted.shape[:1]:
+            raise ValueError(
+                f"The preference file {source} holds {found.shape[0]} trajectories but the model keeps "
+                f"{wanted.shape[0]}: build the model with trajectory_buffer_size={found.shape[0]} to load it"
+            )
+        if found.shape != wanted.shape:
+            raise ValueError(
+                f"Malformed preference file {source}: trajectories/{key} has shape {found.shape}, the model's "
+                f"{wanted.shape}: was it saved by a model of another env or with another option_steps?"
+            )
+        _check_numbers(found, f"trajectories/{key}", source)
+    lengths, (position, full) = arrays["lengths"], arrays["position"]
+    if np.any(lengths < 0) or np.any(lengths > trajectory_buffer.max_length) or not 0 <= position < len(lengths):
+        raise ValueError(f"Malformed preference file {source}: trajectory lengths or position out of range")
+    if full not in (0, 1):
+        raise ValueError(f"Malformed preference file {source}: trajectories/position must be [position, 0 or 1]")
+    return {key: arrays[key] for key in expected}
+
+
+def _check_numbers(array: np.ndarray, key: str, source: str) -> None:
+    if array.dtype.kind not in "biuf":
+        raise ValueError(f"Malformed preference file {source}: {key} must hold numbers, not {array.dtype}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"Malformed preference file {source}: {key} holds NaN or infinite values")
 
 
 def _allocate_like(pairs: TrajectoryPairs, capacity: int) -> TrajectoryPairs:
@@ -306,25 +429,47 @@ def _write(store: np.ndarray, values: np.ndarray, start: int, count: int) -> Non
         store[:, start : start + count] = values[:, :count]
 
 
-def _pairs_from_arrays(arrays: dict[str, np.ndarray], source: str) -> TrajectoryPairs:
-    required = ["labels", "mask", "actions", "reached_actions", "next_achieved_goals", "observations/desired_goal"]
-    missing = [key for key in required if key not in arrays]
+def _pairs_from_arrays(arrays: dict[str, np.ndarray], source: str, shapes: PairShapes | None) -> TrajectoryPairs:
+    observation_keys = [key.split("/", 1)[1] for key in arrays if key.startswith("observations/")]
+    required_observations = GOAL_KEYS if shapes is None else tuple(shapes.observations)
+    required = ["labels", "mask", "actions", "reached_actions", "next_achieved_goals"]
+    missing = [key for key in required + [f"observations/{key}" for key in required_observations] if key not in arrays]
     if missing:
         raise ValueError(f"Malformed preference file {source}: missing {missing}")
-    observation_keys = [key.split("/", 1)[1] for key in arrays if key.startswith("observations/")]
+    if shapes is not None and set(observation_keys) != set(shapes.observations):
+        raise ValueError(
+            f"Malformed preference file {source}: observation keys {sorted(observation_keys)}, the model's are "
+            f"{sorted(shapes.observations)}: were the pairs made on another env?"
+        )
+    for key in required + [f"observations/{key}" for key in observation_keys]:
+        _check_numbers(arrays[key], key, source)
     labels = arrays["labels"].astype(np.float32)
-    n_pairs = labels.shape[0]
+    n_pairs = labels.shape[0] if labels.ndim == 1 else -1
     if labels.ndim != 1 or not np.all(np.isin(labels, (0.0, 0.5, 1.0))):
         raise ValueError(f"Malformed preference file {source}: labels must be a vector of 0, 0.5 or 1")
     mask = arrays["mask"]
     if mask.ndim != 3 or mask.shape[:2] != (2, n_pairs):
         raise ValueError(f"Malformed preference file {source}: mask must have shape (2, {n_pairs}, T), got {mask.shape}")
+    if not np.all(np.isin(mask, (0, 1))):
+        raise ValueError(f"Malformed preference file {source}: mask must hold booleans (0 or 1)")
     horizon = mask.shape[2]
-    for key in ["actions", "reached_actions", "next_achieved_goals"] + [f"observations/{k}" for k in observation_keys]:
+    if shapes is not None and horizon != shapes.length:
+        raise ValueError(
+            f"Malformed preference file {source}: its pairs have T={horizon} steps, the model's have {shapes.length}: "
+            "were they made with another option_steps, episode length or segment_length?"
+        )
+    for key, step_shape in _step_shapes(arrays, shapes, observation_keys).items():
         if arrays[key].shape[:3] != (2, n_pairs, horizon):
             raise ValueError(
                 f"Malformed preference file {source}: {key} must start with shape (2, {n_pairs}, {horizon}), "
                 f"got {arrays[key].shape}"
+            )
+        # Goal envs here have 1-D spaces (validation.check_goal_observation_space): one size per step.
+        if len(step_shape) != 1 or arrays[key].shape[3:] != step_shape:
+            size = step_shape[0] if len(step_shape) == 1 else "size"
+            raise ValueError(
+                f"Malformed preference file {source}: {key} must have shape (2, {n_pairs}, {horizon}, {size}), got "
+                f"{arrays[key].shape}" + ("" if shapes is None else ": were the pairs made on another env?")
             )
     return TrajectoryPairs(
         observations={key: arrays[f"observations/{key}"].astype(np.float32) for key in observation_keys},
@@ -334,3 +479,20 @@ def _pairs_from_arrays(arrays: dict[str, np.ndarray], source: str) -> Trajectory
         mask=mask.astype(bool),
         labels=labels,
     )
+
+
+def _step_shapes(
+    arrays: dict[str, np.ndarray], shapes: PairShapes | None, observation_keys: list[str]
+) -> dict[str, tuple[int, ...]]:
+    """The shape one step of each array must have: the model's, or else one consistent with the file's own arrays."""
+    if shapes is None:
+        observation_shapes = {key: arrays[f"observations/{key}"].shape[3:] for key in observation_keys}
+        action_shape = arrays["actions"].shape[3:]
+    else:
+        observation_shapes, action_shape = dict(shapes.observations), (shapes.action_dim,)
+    return {
+        **{f"observations/{key}": shape for key, shape in observation_shapes.items()},
+        "actions": action_shape,
+        "reached_actions": action_shape,
+        "next_achieved_goals": observation_shapes["achieved_goal"],
+    }

@@ -32,16 +32,20 @@ def default_demonstration_path(env_id: str) -> Path:
 def default_demonstrations(env_id: str) -> Demonstrations:
     """The task's single default demonstration: the expert's first successful episode from seed 0, made on first use.
 
-    The expert and the seeded env are deterministic, so a cached file and a fresh one hold the same episode.
+    The expert and the seeded env are deterministic, so a cached file and a fresh one hold the same episode. The file
+    is written under a temporary name and renamed into place (``Demonstrations.save``), so a process that finds it
+    (parallel tests, zoo workers) never reads half of it.
     """
     path = default_demonstration_path(env_id)
     if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # Write then rename, so a process that finds the file (parallel tests, zoo workers) never reads half of it.
-        partial = path.with_name(f"{path.stem}.{os.getpid()}.partial.npz")
-        expert_demonstrations(env_id, n_episodes=1, seed=0).save(partial)
-        os.replace(partial, path)
-    return load_demonstrations(path)
+        expert_demonstrations(env_id, n_episodes=1, seed=0).save(path)
+    try:
+        return load_demonstrations(path)
+    except ValueError as error:
+        raise ValueError(
+            f"{error} This file is the cached default demonstration of {env_id}: delete {path} and it is made again "
+            "on next use."
+        ) from error
 
 
 def main(argv: list[str] | None = None) -> None:
