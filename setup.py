@@ -18,7 +18,10 @@ setup(
     packages=find_packages(include=["sb3_dipper", "sb3_dipper.*"]),
     package_data={"sb3_dipper": ["py.typed", "version.txt"]},
     # The zoo's hyperparameter files, found by sb3_dipper.zoo.hyperparams_dir() in an installed package.
-    data_files=[("share/sb3-dipper/hyperparams", sorted(glob.glob("hyperparams/*.yml")))],
+    data_files=[
+        ("share/sb3-dipper/hyperparams", sorted(glob.glob("hyperparams/*.yml"))),
+        ("share/sb3-dipper/hyperparams/paper", sorted(glob.glob("hyperparams/paper/*.yml"))),
+    ],
     python_requires=">=3.10",
     install_requires=[
         # 2.13.0 is the CPU wheel these machines carry; the Makefile installs it first so this range adds nothing.

@@ -50,10 +50,19 @@ def load_entry(algo: str, env_id: str, hyperparams_dir: Path = HYPERPARAMS_DIR) 
 
 
 def make_model(
-    algo: str, env_id: str, seed: int, overrides: dict[str, Any] | None = None, **model_kwargs: Any
+    algo: str,
+    env_id: str,
+    seed: int,
+    overrides: dict[str, Any] | None = None,
+    hyperparams: Path = HYPERPARAMS_DIR,
+    **model_kwargs: Any,
 ) -> tuple[BaseAlgorithm, VecEnv, int]:
-    """Build the training env and the model of one YAML entry; returns ``(model, env, n_timesteps)``."""
-    entry = {**load_entry(algo, env_id), **(overrides or {})}
+    """Build the training env and the model of one YAML entry of ``hyperparams/<algo>.yml``.
+
+    :param hyperparams: the folder of the YAML files (``hyperparams/paper`` for the paper-scale settings)
+    :return: ``(model, env, n_timesteps)``
+    """
+    entry = {**load_entry(algo, env_id, hyperparams), **(overrides or {})}
     env = make_env(env_id, entry, seed)
     n_timesteps = int(entry["n_timesteps"])
     kwargs = {key: value for key, value in entry.items() if key not in ZOO_KEYS}

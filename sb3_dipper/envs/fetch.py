@@ -7,7 +7,7 @@ Row and column 0 and 10 are the outer walls; one horizontal wall (row ``H_P``) a
 split the 9 x 9 interior into four rooms joined by four one-cell gates. The layout is drawn anew at every reset, as in
 the paper's appendix; the gripper starts at the centre of a random cell of the room nearest the robot and the goal is
 the centre of a random cell of the diagonally opposite room (:func:`generate_four_room_layout`). ``fixed_layout=True``
-gives the authors' single layout, start and goal instead (``AUTHORS_LAYOUT``). Observation: gripper position (3) and the
+(the id ``FetchFourRoomMazeFixed-v0``) gives the authors' single layout, start and goal instead (``AUTHORS_LAYOUT``). Observation: gripper position (3) and the
 grid flattened (121 cells, 1 = wall), 124 numbers like the authors' code. An episode is 225 steps (K = T = 15).
 
 ``FetchPush-v4`` and ``FetchPickAndPlace-v4`` are gymnasium-robotics' own tasks: this module only declares their
@@ -692,25 +692,27 @@ class FetchPickAndPlaceExpert:
 
 EXPERTS: dict[str, Any] = {
     "FetchFourRoomMaze-v0": FetchMazeExpert,
+    "FetchFourRoomMazeFixed-v0": FetchMazeExpert,
     "FetchPush-v4": FetchPushExpert,
     "FetchPickAndPlace-v4": FetchPickAndPlaceExpert,
     "FetchPushFixed-v0": FetchPushExpert,
     "FetchPickAndPlaceFixed-v0": FetchPickAndPlaceExpert,
 }
 
-_OUR_ENVS = {
-    # K x T = 15 x 15 primitive steps.
-    "FetchFourRoomMaze-v0": ("sb3_dipper.envs.fetch:FetchFourRoomMazeEnv", 225),
+_OUR_ENVS: dict[str, tuple[str, int, dict[str, Any]]] = {
+    # K x T = 15 x 15 primitive steps; a new layout every episode, or the authors' single layout.
+    "FetchFourRoomMaze-v0": ("sb3_dipper.envs.fetch:FetchFourRoomMazeEnv", 225, {}),
+    "FetchFourRoomMazeFixed-v0": ("sb3_dipper.envs.fetch:FetchFourRoomMazeEnv", 225, {"fixed_layout": True}),
     # Upstream's 50 steps; the paper's K x T = 7 x 7 = 49 is `gym.make(id, max_episode_steps=49)`.
-    "FetchPushFixed-v0": ("sb3_dipper.envs.fetch:FetchPushFixedEnv", 50),
-    "FetchPickAndPlaceFixed-v0": ("sb3_dipper.envs.fetch:FetchPickAndPlaceFixedEnv", 50),
+    "FetchPushFixed-v0": ("sb3_dipper.envs.fetch:FetchPushFixedEnv", 50, {}),
+    "FetchPickAndPlaceFixed-v0": ("sb3_dipper.envs.fetch:FetchPickAndPlaceFixedEnv", 50, {}),
 }
 
 
 def register_fetch_envs() -> None:
     """Register the Fetch env ids and the subgoal spaces of gymnasium-robotics' push and pick-and-place (idempotent)."""
-    for env_id, (entry_point, max_episode_steps) in _OUR_ENVS.items():
+    for env_id, (entry_point, max_episode_steps, kwargs) in _OUR_ENVS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point, max_episode_steps=max_episode_steps)
+            gym.register(id=env_id, entry_point=entry_point, max_episode_steps=max_episode_steps, kwargs=kwargs)
     register_subgoal_space("FetchPush-v4", push_subgoal_space)
     register_subgoal_space("FetchPickAndPlace-v4", pick_and_place_subgoal_space)

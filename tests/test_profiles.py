@@ -1,0 +1,84 @@
+"""The two sets of hyperparameters: CPU profiles in hyperparams/<algo>.yml, paper scale in hyperparams/paper/<algo>.yml."""
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch as th
+import yaml
+
+from sb3_dipper.zoo import hyperparams_dir
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
+from configs import load_entry, make_model
+
+PAPER_DIR = hyperparams_dir() / "paper"
+PAPER_TASKS = [
+    "FetchFourRoomMaze-v0",
+    "FetchFourRoomMazeFixed-v0",
+    "FetchPickAndPlace-v4",
+    "FetchPickAndPlaceFixed-v0",
+    "FetchPush-v4",
+    "FetchPushFixed-v0",
+    "FrankaKitchenMicrowaveBurner-v0",
+]
+ALGOS = sorted(path.stem for path in hyperparams_dir().glob("*.yml"))
+# Widest network and largest batch a CPU profile may use: one core trains it within about 90 minutes per run.
+CPU_WIDTH, CPU_BATCH = 256, 256
+
+
+def widest_layer(entry: dict) -> int:
+    return max(
+        (width for key in ("policy_kwargs", "low_policy_kwargs") for width in entry.get(key, {}).get("net_arch", [0])),
+        default=0,
+    )
+
+
+def test_every_algorithm_has_a_paper_scale_file_with_every_paper_task():
+    assert sorted(path.stem for path in PAPER_DIR.glob("*.yml")) == ALGOS
+    for algo in ALGOS:
+        entries = yaml.safe_load((PAPER_DIR / f"{algo}.yml").read_text())
+        assert set(PAPER_TASKS) | {"default"} <= set(entries), algo
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_cpu_profiles_are_cpu_sized_and_paper_files_are_paper_sized(algo):
+    for env_id in [*PAPER_TASKS, "default"]:
+        cpu = load_entry(algo, env_id)
+        paper = load_entry(algo, env_id, PAPER_DIR)
+        assert widest_layer(cpu) <= CPU_WIDTH and cpu.get("batch_size", 0) <= CPU_BATCH, (algo, env_id)
+        assert widest_layer(paper) == 512, (algo, env_id)
+        # K, the demonstration and the budget-independent settings of the algorithm stay the paper's.
+        for key in ("option_steps", "segment_length", "demo_path", "beta", "value_reg_coef", "ent_coef", "gamma"):
+            assert cpu.get(key) == paper.get(key), (algo, env_id, key)
+
+
+@pytest.mark.parametrize("algo", ["dipper", "dipper_paper", "dipper_nov", "hier", "piper", "sac", "dac"])
+def test_paper_scale_entries_build(algo):
+    model, env, n_timesteps = make_model(
+        algo, "FetchPickAndPlaceFixed-v0", seed=0, hyperparams=PAPER_DIR, overrides=dict(buffer_size=1000)
+    )
+    assert n_timesteps == 9e5
+    assert model.batch_size == 1024
+    env.close()
+
+
+def test_dipper_on_the_paper_tasks_is_the_papers_dipper():
+    """No switch beyond the paper is on for a paper task until a measurement there shows it helps."""
+    switches = ("nll_coef", "hindsight_actions", "truncate_at_goal", "planning", "planning_lookahead")
+    for directory in (hyperparams_dir(), PAPER_DIR):
+        for env_id in PAPER_TASKS:
+            entry = load_entry("dipper", env_id, directory)
+            assert not any(key in entry for key in switches), (directory, env_id)
+            assert "acting_tau" not in entry["policy_kwargs"], (directory, env_id)
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("algo", ["dipper", "sac"])
+def test_paper_scale_trains_on_cuda(algo):
+    model, env, _ = make_model(
+        algo, "FetchPickAndPlaceFixed-v0", seed=0, hyperparams=PAPER_DIR, overrides=dict(learning_starts=100), device="cuda"
+    )
+    model.learn(300)
+    assert next(model.policy.parameters()).is_cuda
+    env.close()
