@@ -7,8 +7,9 @@ Row and column 0 and 10 are the outer walls; one horizontal wall (row ``H_P``) a
 split the 9 x 9 interior into four rooms joined by four one-cell gates. The layout is drawn anew at every reset, as in
 the paper's appendix; the gripper starts at the centre of a random cell of the room nearest the robot and the goal is
 the centre of a random cell of the diagonally opposite room (:func:`generate_four_room_layout`). ``fixed_layout=True``
-(the id ``FetchFourRoomMazeFixed-v0``) gives the authors' single layout, start and goal instead (``AUTHORS_LAYOUT``). Observation: gripper position (3) and the
-grid flattened (121 cells, 1 = wall), 124 numbers like the authors' code. An episode is 225 steps (K = T = 15).
+(the id ``FetchFourRoomMazeFixed-v0``) gives the authors' single layout, start and goal instead (``AUTHORS_LAYOUT``).
+Observation: gripper position (3) and the grid flattened (121 cells, 1 = wall), 124 numbers like the authors' code. An
+episode is 225 steps (K = T = 15).
 
 ``FetchPush-v4`` and ``FetchPickAndPlace-v4`` are gymnasium-robotics' own tasks: this module only declares their
 subgoal spaces (the object position). ``FetchPushFixed-v0`` and ``FetchPickAndPlaceFixed-v0`` are the authors' fixed
