@@ -69,9 +69,13 @@ def test_resume_after_kill(tmp_path):
         assert np.isfinite(data["subgoal_distance"]).all()
 
 
-def write_run(out: Path, algo: str, env_id: str, seed: int, successes: list[float], hierarchical: bool) -> None:
+def write_run(
+    out: Path, algo: str, env_id: str, seed: int, successes: list[float], hierarchical: bool, finished: bool = True
+) -> None:
     directory = benchmark.run_directory(out, algo, env_id, seed)
     directory.mkdir(parents=True)
+    if finished:
+        (directory / "result.json").write_text("{}")
     steps = 1000 * np.arange(1, len(successes) + 1)
     arrays = dict(timesteps=steps, successes=np.repeat(np.array(successes)[:, None], 4, axis=1))
     if hierarchical:
@@ -88,7 +92,7 @@ def test_report_per_task(tmp_path):
             write_run(tmp_path, "sac", env_id, seed, [0.0, 0.25, 0.5], hierarchical=False)
     # A seed still running: the curves stop at the evaluations every seed has.
     write_run(tmp_path, "hier", ENV_ID, 0, [0.0, 0.0, 0.25], hierarchical=True)
-    write_run(tmp_path, "hier", ENV_ID, 1, [0.0, 0.0], hierarchical=True)
+    write_run(tmp_path, "hier", ENV_ID, 1, [0.0, 0.0], hierarchical=True, finished=False)
     algos = ["dipper", "hier", "sac"]
 
     tables, curves, figure = benchmark.report(tmp_path, algos, envs, [0, 1], "report", tmp_path / "figures")
@@ -99,6 +103,8 @@ def test_report_per_task(tmp_path):
     assert list(rows) == ["DIPPER", "HIER", "SAC+HER"]
     assert "| 1.00 +- 0.00 | 2,000 | 1.00 | -3.00 |" in rows["DIPPER"]
     assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | 3,000 | - | - |")
+    assert rows["DIPPER"].startswith("| DIPPER | 2 | 3,000 |")
+    assert rows["HIER"].startswith("| HIER | 2 (1 partial) | 2,000 | 0.00 +- 0.00 |")
     assert len(tables["FetchPush-v4"].splitlines()) == 2 + 2
     csv = (tmp_path / "report.csv").read_text().splitlines()
     assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value"
@@ -107,6 +113,18 @@ def test_report_per_task(tmp_path):
 
     lines = benchmark.plot_curves(curves, tmp_path / "figures" / "again.png")
     assert lines == {ENV_ID: ["DIPPER", "HIER", "SAC+HER"], "FetchPush-v4": ["DIPPER", "SAC+HER"]}
+
+
+def test_report_only_runs_nothing_and_reports_what_is_on_disk(tmp_path):
+    write_run(tmp_path, "dipper", ENV_ID, 0, [0.0, 0.5], hierarchical=True, finished=False)
+    command = [sys.executable, str(SCRIPT), "learning", "--report-only", "--algos", "dipper", "sac", "--seeds", "0"]
+    command += ["--envs", ENV_ID, "--name", "partial", "--out", str(tmp_path)]
+    command += ["--benchmarks-md", str(tmp_path / "BENCHMARKS.md"), "--figures-dir", str(tmp_path / "figures")]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "2 runs to do, 0 already finished" in done.stdout
+    assert not benchmark.run_directory(tmp_path, "sac", ENV_ID, 0).exists()
+    assert "| DIPPER | 1 (1 partial) | 2,000 | 0.50 +- 0.00 |" in (tmp_path / "BENCHMARKS.md").read_text()
 
 
 def test_protocol_presets_yield_to_flags():

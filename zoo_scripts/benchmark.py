@@ -30,6 +30,10 @@ Protocols preset algorithms, tasks, seeds and budgets; flags given explicitly ov
   core a run is faster: DIPPER's 2e5-step runs took 2.4 ms per step against 4.8 measured, so take 0.6 of the
   measurement. 3 seeds x (63.6 ms x 40,000 + 5 x 52 s) x 0.6 / 2 workers = 2,520 s = 42 min, plus at most one DAC
   run (40,000 x 17.5 ms x 0.6 = 7 min) left alone at the end: under 50 minutes.
+* ``cpu``: the paper's tasks (the authors' fixed variants first) at the CPU profiles of ``hyperparams/<algo>.yml``
+  and their budgets (150k steps on pick-and-place, 640k on push, 675k on the kitchen, 700k on the maze), DIPPER, the
+  paper's DIPPER, DIPPER-No-V, HIER, PIPER, DAC and SAC+HER, seeds 0-2, 20 evaluation episodes every 15,000 steps.
+  Narrow it with ``--envs``, ``--algos`` and ``--seeds``; measured run times are in BENCHMARKS.md.
 * ``paper``: the paper's four tasks, the paper's algorithms (and this package's DIPPER), seeds 0-4, the YAML budgets
   (6.3e5 to 1.35e6 primitive steps with 3x512 networks and batches of 1024, not timed here: 220 runs for a big
   machine or a Ray cluster), evaluations of 50 episodes every 25,000 steps.
@@ -72,6 +76,16 @@ BENCHMARKS_MD = REPO / "BENCHMARKS.md"
 RESULTS_DIR = REPO / "docs" / "benchmarks"
 POINT_MAZE = "PointMazeFourRooms-v0"
 PAPER_TASKS = ["FetchFourRoomMaze-v0", "FetchPickAndPlace-v4", "FetchPush-v4", "FrankaKitchenMicrowaveBurner-v0"]
+# The paper's tasks with the authors' fixed variants first: the CPU profiles of hyperparams/<algo>.yml, one core per run.
+CPU_TASKS = [
+    "FetchPickAndPlaceFixed-v0",
+    "FetchPushFixed-v0",
+    "FrankaKitchenMicrowaveBurner-v0",
+    "FetchPickAndPlace-v4",
+    "FetchPush-v4",
+    "FetchFourRoomMazeFixed-v0",
+    "FetchFourRoomMaze-v0",
+]
 # The paper's comparison (its DIPPER, DIPPER-No-V and baselines, SAC+HER as FLAT) plus this package's DIPPER.
 PAPER_ALGORITHMS = ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "raps", "piper", "saga", "dac", "dpo_flat", "sac"]
 LEARNING_DEFAULTS: dict[str, Any] = dict(
@@ -87,6 +101,14 @@ PROTOCOLS: dict[str, dict[str, Any]] = {
         eval_episodes=20,
     ),
     "paper": dict(envs=PAPER_TASKS, algos=PAPER_ALGORITHMS, seeds=[0, 1, 2, 3, 4], n_timesteps=None, eval_freq=25_000),
+    "cpu": dict(
+        envs=CPU_TASKS,
+        algos=["dipper", "dipper_paper", "dipper_nov", "hier", "piper", "dac", "sac"],
+        seeds=[0, 1, 2],
+        n_timesteps=None,
+        eval_freq=15_000,
+        eval_episodes=20,
+    ),
 }
 # Logged by the option layer of hierarchical algorithms (``rollout/<key>``); recorded at each evaluation.
 OPTION_METRICS = ("subgoal_distance", "low_value")
@@ -263,6 +285,7 @@ class Curves:
     """The evaluations of one algorithm on one task, truncated to the evaluations every seed has reached."""
 
     seeds: list[int]
+    finished: list[bool]  # per seed: the run has ended (result.json); a running or cut-off run is partial
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (seeds, evaluations) success rates
     metrics: dict[str, np.ndarray]  # every OPTION_METRICS key, (seeds, evaluations), NaN where not recorded
@@ -281,6 +304,7 @@ def load_curves(out: Path, algo: str, env_id: str, seeds: list[int]) -> Curves |
     nan = np.full(length, np.nan)
     return Curves(
         seeds=list(runs),
+        finished=[(run_directory(out, algo, env_id, seed) / "result.json").exists() for seed in runs],
         steps=next(iter(runs.values()))["timesteps"][:length],
         success=np.stack([run["successes"].mean(axis=1)[:length] for run in runs.values()]),
         metrics={key: np.stack([run[key][:length] if key in run else nan for run in runs.values()]) for key in OPTION_METRICS},
@@ -310,13 +334,16 @@ def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tup
         final = algo_curves.success[:, -1]
         reached = np.flatnonzero(algo_curves.success.mean(axis=0) >= 0.5)
         to_half = f"{int(algo_curves.steps[reached[0]]):,}" if reached.size else "not reached"
+        unfinished = algo_curves.finished.count(False)
+        runs = f"{len(algo_curves.seeds)}" + (f" ({unfinished} partial)" if unfinished else "")
         rows.append(
-            f"| {label(algo)} | {len(algo_curves.seeds)} | {final.mean():.2f} +- {final.std():.2f} | {to_half} | "
+            f"| {label(algo)} | {runs} | {int(algo_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
+            f"{to_half} | "
             f"{final_mean(algo_curves, 'subgoal_distance')} | {final_mean(algo_curves, 'low_value')} |"
         )
     table = (
-        "| algorithm | seeds | final success (mean +- std) | steps to 50 % (mean curve) | final subgoal distance | "
-        "final lower value |\n|---|---|---|---|---|---|\n"
+        "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | steps to 50 % (mean curve) | "
+        "subgoal distance there | lower value there |\n|---|---|---|---|---|---|---|\n"
     )
     return table + "\n".join(rows), curves, csv_rows
 
@@ -420,9 +447,10 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
         if not (run_directory(out, run_name(algo, args.variant), env_id, seed) / "result.json").exists()
     ]
     print(f"{len(jobs)} runs to do, {len(triples) - len(jobs)} already finished", flush=True)
-    results = ray_results(jobs, args.ray_address) if args.ray_address else local_results(jobs, args.workers)
-    for result in results:
-        print(result, flush=True)
+    if not args.report_only:
+        results = ray_results(jobs, args.ray_address) if args.ray_address else local_results(jobs, args.workers)
+        for result in results:
+            print(result, flush=True)
     tables, curves, figure = report(out, args.report or names, args.envs, args.seeds, args.name, Path(args.figures_dir))
     markdown = Path(args.benchmarks_md)
     budget = f"{args.n_timesteps:,} primitive steps per run" if args.n_timesteps else "the YAML budgets"
@@ -461,6 +489,9 @@ def main() -> None:
     learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")
     learning.add_argument("--variant", default=None, help="name of a variant; its runs live in <algo>-<variant>")
     learning.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameter overrides of a variant")
+    learning.add_argument(
+        "--report-only", action="store_true", help="run nothing: tables and figure from the runs on disk, partial ones too"
+    )
     learning.add_argument("--report", nargs="*", default=None, help="runs to put in the table (default: this command's)")
     learning.add_argument("--benchmarks-md", default=str(BENCHMARKS_MD), help="markdown file the section is written to")
     learning.add_argument("--figures-dir", default=str(RESULTS_DIR), help="directory of the figure")
