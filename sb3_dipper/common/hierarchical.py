@@ -12,6 +12,7 @@ callbacks' ``on_step`` runs once per primitive step, ``rollout/success_rate`` co
 
 from __future__ import annotations
 
+import copy
 import math
 import sys
 import time
@@ -22,17 +23,25 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
+from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import is_vectorized_observation, safe_mean
+from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.hierarchical_policy import (
+    ActingLowLevel,
+    HierarchicalPolicy,
+    HighLevelActions,
+    PolicyHighLevel,
+    SACPolicyLowLevel,
+)
 from sb3_dipper.common.imitation import DemonstrationBuffer, DemoSAC
+from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.low_level import (
     LevelLogger,
     SACLowLevel,
@@ -41,7 +50,7 @@ from sb3_dipper.common.low_level import (
     low_level_observation_space,
     sac_torch_save_params,
 )
-from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition, low_level_observation
+from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.common.validation import as_float, as_int, as_optional_int, check_goal_observation_space
 from sb3_dipper.envs.demos import default_demonstrations
@@ -52,8 +61,19 @@ SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="Hierarch
 PREDICT_ONLY_BUFFER_SIZE = 16
 
 
-class HierarchicalAlgorithm(BaseAlgorithm):
+class HierarchicalAlgorithm(CheckedLoading):
     """Base class of two-level algorithms: a higher level proposes subgoals, a lower SAC+HER reaches them.
+
+    Callbacks follow SB3's off-policy loop, where a *rollout* is one option of every env (at most ``option_steps``
+    primitive steps, fewer when an episode ends): ``on_rollout_start`` before the higher level proposes the subgoals,
+    ``on_step`` after every primitive step, ``on_rollout_end`` once the option is stored and before the training round
+    that follows it. As in SB3, a callback's ``on_step`` returning False stops training at once, without
+    ``on_rollout_end``; the option ends there, is stored like any shortened option, and ``learn(...,
+    reset_num_timesteps=False)`` resumes from where the env is.
+
+    ``policy`` is SB3's attribute, the *higher-level* policy: ``policy.predict`` returns a higher-level action in
+    ``[-1, 1]^d`` (a subgoal), not a primitive action. :meth:`predict` runs both levels; :meth:`export_policy` returns
+    them as a :class:`~sb3_dipper.common.hierarchical_policy.HierarchicalPolicy` that acts without the algorithm.
 
     :param policy: the higher-level policy (class or alias)
     :param env: a goal env (Dict observations with ``observation``, ``achieved_goal``, ``desired_goal``)
@@ -95,6 +115,9 @@ class HierarchicalAlgorithm(BaseAlgorithm):
     lower: DemoSAC
     low_level: SACLowLevel
     option_env: OptionVecEnv | None
+    # The lower SAC's update count, saved with the model because the lower SAC is rebuilt on load: its logged count and
+    # DIPPER's value-snapshot schedule resume where they were.
+    _lower_n_updates: int = 0
 
     def __init__(
         self,
@@ -262,6 +285,7 @@ class HierarchicalAlgorithm(BaseAlgorithm):
             q_filter=self.q_filter,
             **self.low_level_kwargs,
         )
+        self.lower._n_updates = self._lower_n_updates
         if self.demo_path is not None and self.env is not None:
             self.lower.demonstrations = self._load_demonstrations()
         self.lower._vec_normalize_env = self.low_normalizer  # type: ignore[assignment]
@@ -309,33 +333,48 @@ class HierarchicalAlgorithm(BaseAlgorithm):
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
         """A primitive action; ``state = (subgoals, steps_left)`` carries the current option between calls.
 
-        ``observation`` is what the (possibly ``VecNormalize``-d) env returns, batched or not.
+        ``observation`` is what the (possibly ``VecNormalize``-d) env returns, batched or not. Both levels act with their
+        policies (never the random actions of the warm-up), as the policy :meth:`export_policy` returns does.
         """
-        assert isinstance(observation, dict) and self.subgoal_space is not None, "a goal env gives Dict observations"
-        vectorized = is_vectorized_observation(observation, self.observation_space)  # type: ignore[arg-type]
-        batch = {key: np.asarray(value).reshape(-1, *self.observation_space[key].shape) for key, value in observation.items()}  # type: ignore[index]
-        n_envs = batch["desired_goal"].shape[0]
-        if state is None:
-            subgoals, steps_left = np.zeros((n_envs, self.subgoal_space.dim), dtype=np.float32), np.zeros(n_envs, np.int64)
-        else:
-            subgoals, steps_left = np.array(state[0], dtype=np.float32), np.array(state[1], dtype=np.int64)
-        new_option = steps_left <= 0
-        if episode_start is not None:
-            new_option |= np.asarray(episode_start, dtype=bool).reshape(-1)
         self._refresh_low_normalizer()
-        if new_option.any():
-            self.policy.set_training_mode(False)
-            high_actions = self._high_level_actions(batch, deterministic)
-            subgoals[new_option] = self.subgoal_space.to_world(high_actions[new_option])
-            steps_left[new_option] = self.option_steps
-        normalized_subgoals = subgoals if self.low_normalizer is None else self.low_normalizer.normalize_subgoal(subgoals)
-        low_obs = low_level_observation(batch, normalized_subgoals, self.subgoal_space)
-        actions = self.low_level.act(low_obs, deterministic, normalized=True)
-        if isinstance(self.action_space, spaces.Box):
-            actions = np.clip(actions, self.action_space.low, self.action_space.high)
-        if not vectorized:
-            actions = actions.squeeze(axis=0)
-        return actions, (subgoals, steps_left - 1)
+        self.policy.set_training_mode(False)
+        return self._hierarchical_policy(self._high_level_actions, self._acting_low_level()).predict(
+            observation, state, episode_start, deterministic  # type: ignore[arg-type]
+        )
+
+    def export_policy(self) -> HierarchicalPolicy:
+        """Both levels as a :class:`~sb3_dipper.common.hierarchical_policy.HierarchicalPolicy` that acts without the
+        algorithm: copies of the higher and lower policies, the subgoal space, ``option_steps`` and the lower level's
+        ``VecNormalize`` statistics. Its ``predict(obs, state, episode_start, deterministic)`` gives this model's
+        actions; later training does not change it.
+
+        :raises NotImplementedError: for a model that plans (DIPPER with ``planning != "off"``): its waypoints come from
+            the subgoal graph, which is not exported; use :meth:`predict`
+        """
+        if getattr(self, "subgoal_graph", None) is not None:
+            raise NotImplementedError(
+                f"This {type(self).__name__} plans over its subgoal graph, which export_policy does not export: "
+                "act with model.predict, or export a model trained with planning='off'"
+            )
+        self._refresh_low_normalizer()
+        policy = self._hierarchical_policy(PolicyHighLevel(self.policy), self._acting_low_level())
+        return copy.deepcopy(policy)
+
+    def _hierarchical_policy(self, high_level: HighLevelActions, low_level: ActingLowLevel) -> HierarchicalPolicy:
+        assert self.subgoal_space is not None
+        return HierarchicalPolicy(
+            high_level,
+            low_level,
+            self.subgoal_space,
+            self.option_steps,
+            self.observation_space,  # type: ignore[arg-type]
+            self.action_space,  # type: ignore[arg-type]
+            self.low_normalizer,
+        )
+
+    def _acting_low_level(self) -> ActingLowLevel:
+        """The lower level as it acts outside training: its SAC policy alone."""
+        return SACPolicyLowLevel(self.lower.policy)
 
     # ---------------------------------------------------------------------------------------------------- learning
 
@@ -348,9 +387,16 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfHierarchicalAlgorithm:
+        """Train for ``total_timesteps`` primitive env steps (SB3's ``learn``).
+
+        Each iteration collects one *rollout*, one option of every env (``on_rollout_start``, an ``on_step`` per
+        primitive step, ``on_rollout_end``), then runs one training round once ``learning_starts`` steps are done.
+        ``reset_num_timesteps=False`` continues the count and the env's episodes where the last call stopped.
+        """
         if self.option_env is None:
+            name = type(self).__name__
             raise ValueError(
-                f"learn() needs an env: pass one to {type(self).__name__}(...) or to {type(self).__name__}.load(path, env=...)"
+                f"learn() needs an env: pass one to {name}(...), to {name}.load(path, env=...) or to model.set_env(env)"
             )
         total_timesteps, callback = self._setup_learn(
             total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
@@ -397,23 +443,28 @@ class HierarchicalAlgorithm(BaseAlgorithm):
             buffer.truncate_last_trajectory()
 
     def _collect_option(self) -> bool:
-        """Run one option on every env; return False when a callback stopped training."""
+        """One rollout: one option of every env, stored; return False when a callback stopped training."""
         assert self.option_env is not None and self._last_obs is not None
         self.policy.set_training_mode(False)
         self.low_level.random_actions = self.num_timesteps < self.learning_starts
         self._refresh_low_normalizer()
+        self._callback.on_rollout_start()
         start_obs = {key: value.copy() for key, value in self.option_env.original_obs.items()}  # type: ignore[union-attr]
         high_actions = self._training_high_level_actions(self._last_obs)  # type: ignore[arg-type]
         self._continue_training = True
         new_obs, rewards, dones, infos = self.option_env.step(high_actions)
-        if not self._continue_training:
-            return False
+        # An option a callback stopped is stored like any shortened option, and _last_obs follows the env, so that
+        # learn(..., reset_num_timesteps=False) resumes from where the env is.
         self._store_option(start_obs, high_actions, new_obs, rewards, dones, infos)  # type: ignore[arg-type]
         for info in infos:
             self._option_metrics["subgoal_distance"].append(info["subgoal_distance"])
             if "low_value" in info and self.num_timesteps >= self.learning_starts:
                 self._option_metrics["low_value"].append(info["low_value"])
         self._last_obs = new_obs  # type: ignore[assignment]
+        if not self._continue_training:
+            # As SB3's collect_rollouts: no on_rollout_end after a callback stopped training.
+            return False
+        self._callback.on_rollout_end()
         return True
 
     @abstractmethod
@@ -429,14 +480,16 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         """Store a finished option of every env (``start_obs`` original, ``new_obs`` as the env returned it)."""
 
     def _on_primitive_step(self, transition: PrimitiveTransition) -> bool:
-        """The option layer's sink: count the step, fill the lower buffer, run callbacks, log episodes."""
+        """The option layer's sink: count the step, run callbacks, fill the lower buffer, log episodes."""
         self.num_timesteps += self.n_envs
         self._low_steps_since_train += 1
-        self.low_level.store(transition)
         dones, infos = transition.base_dones, transition.infos
         self._callback.update_locals(locals())
         if not self._callback.on_step():
             self._continue_training = False
+            # The option ends at this step, so its lower segment does too: no HER episode spans two subgoals.
+            transition.segment_ends = np.ones_like(transition.segment_ends)
+        self.low_level.store(transition)
         self._update_info_buffer(infos, dones)
         self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
         for _ in range(int(np.sum(dones))):
@@ -456,6 +509,7 @@ class HierarchicalAlgorithm(BaseAlgorithm):
         if gradient_steps > 0:
             self.lower._current_progress_remaining = self._current_progress_remaining
             self.lower.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
+            self._lower_n_updates = self.lower._n_updates
 
     @abstractmethod
     def train(self) -> None:
@@ -487,6 +541,23 @@ class HierarchicalAlgorithm(BaseAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return sac_torch_save_params(self.lower, "lower")
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """SB3's ``set_env`` (same spaces, number of envs and time limit): the next ``learn`` runs on ``env``.
+
+        A model loaded without an env holds predict-only buffers and no option layer: it is rebuilt for ``env``
+        around its networks, optimizers and counters, with its configured ``buffer_size`` (load saved buffers with
+        ``load_replay_buffer`` after ``set_env``). A model that has an env keeps its replay data, as in SB3, and its
+        option layer moves to ``env``.
+        """
+        super().set_env(env, force_reset)
+        if self.option_env is None:
+            self._rebuild_keeping_parameters()
+        else:
+            assert self.env is not None and self.subgoal_space is not None
+            self.option_env = OptionVecEnv(
+                self.env, self.subgoal_space, self.option_steps, self.option_env.low_level, sink=self.option_env.sink
+            )
 
     @property
     def replay_buffer(self) -> ReplayBuffer | None:

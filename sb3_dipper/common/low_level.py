@@ -48,6 +48,8 @@ class SubgoalVecEnv(VecEnv):
     """
 
     def __init__(self, observation_space: spaces.Dict, action_space: spaces.Space, subgoal_space: SubgoalSpace, num_envs: int):
+        # VecEnv.__init__ asks the envs for their render_mode and warns when there is none; this facade renders nothing.
+        self.render_mode = None
         super().__init__(num_envs, observation_space, action_space)
         self.subgoal_space = subgoal_space
 

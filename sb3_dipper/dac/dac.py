@@ -68,7 +68,8 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from torch import nn
 
 from sb3_dipper.common.demonstrations import Demonstrations, load_demonstrations
-from sb3_dipper.common.hierarchical import sibling_path
+from sb3_dipper.common.hierarchical import has_finished_episode, sibling_path
+from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.validation import as_float, as_int, as_train_freq, check_goal_observation_space
 from sb3_dipper.dac.policies import Discriminator, MlpPolicy, MultiInputPolicy
 from sb3_dipper.envs.demos import default_demonstrations
@@ -297,7 +298,7 @@ class _AbsorbingStateWriter:
 # ---------------------------------------------------------------------------------------------------- the algorithm
 
 
-class DAC(SAC):
+class DAC(CheckedLoading, SAC):
     """DAC (Kostrikov et al., ICLR 2019): SAC on rewards from a discriminator of expert versus replay transitions.
 
     Each gradient step: one discriminator update on a replay batch and an expert batch (cross-entropy plus gradient
@@ -555,11 +556,24 @@ class DAC(SAC):
 
     def _setup_learn(self, *args: Any, **kwargs: Any) -> Any:
         if self._predict_only:
-            raise ValueError("This DAC model was loaded without an env, only to predict: load it with DAC.load(path, env=...)")
+            raise ValueError(
+                "This DAC model was loaded without an env, only to predict: give it one with model.set_env(env) "
+                "or DAC.load(path, env=...)"
+            )
         result = super()._setup_learn(*args, **kwargs)
         if self.expert is None:
             self.expert = self._load_expert()
         return result
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """SB3's ``set_env``. A model loaded without an env (predict-only buffers) is rebuilt for ``env`` around its
+        networks and optimizers, with its configured ``buffer_size`` and the demonstrations; load saved buffers with
+        ``load_replay_buffer`` after ``set_env``."""
+        super().set_env(env, force_reset)
+        if self._predict_only:
+            # SAC builds the configured buffer only where there is none (a HerReplayBuffer needs the env).
+            self.replay_buffer = None
+            self._rebuild_keeping_parameters()
 
     # ---------------------------------------------------------------------------------------------------- acting
 
@@ -593,6 +607,9 @@ class DAC(SAC):
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         """Per gradient step: the discriminator, then SAC on the rewards the updated discriminator gives the batch."""
+        if isinstance(self.replay_buffer, HerReplayBuffer) and not has_finished_episode(self.replay_buffer):
+            # A model resumed with empty buffers (load or set_env) must first finish an episode: HER samples none before.
+            return
         self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         if self.ent_coef_optimizer is not None:

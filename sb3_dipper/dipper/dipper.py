@@ -119,6 +119,9 @@ class DIPPER(HierarchicalAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
     policy: DIPPERPolicy
+    # The lower update count when the lower critic was last copied into the snapshot V^L_m (saved with the model, as
+    # the snapshot is), so that a loaded model refreshes the snapshot on the schedule it had.
+    _value_snapshot_updates: int = 0
 
     def __init__(
         self,
@@ -266,8 +269,8 @@ class DIPPER(HierarchicalAlgorithm):
             self.subgoal_graph = SubgoalGraph(self.subgoal_space, self.planning_resolution or self.subgoal_space.threshold)
         self._trajectories_since_graph = 0
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
+        # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
-        self._value_snapshot_updates = self.lower._n_updates
         self._labeler: PreferenceSource | None = self.preference_source
         if self.env is not None:
             self._goal_reached = sparse_goal_reached_fn(self.env)
@@ -482,12 +485,24 @@ class DIPPER(HierarchicalAlgorithm):
             "preferences",
             "_labeler",
             "_goal_reached",
-            "_value_snapshot",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
-        return ["policy", "policy.actor.optimizer", *state_dicts], variables
+        return ["policy", "policy.actor.optimizer", "_value_snapshot", *state_dicts], variables
+
+    def set_parameters(
+        self, load_path_or_dict: str | dict[str, Any], exact_match: bool = True, device: th.device | str = "auto"
+    ) -> None:
+        """SB3's ``set_parameters``. A file saved before the value snapshot was saved with the model starts the
+        snapshot from its lower critic, as a snapshot refresh would."""
+        params = load_path_or_dict
+        if isinstance(params, dict) and "_value_snapshot" not in params and "lower.policy" in params:
+            lower_policy = params["lower.policy"].items()
+            critic = {name.removeprefix("critic."): value for name, value in lower_policy if name.startswith("critic.")}
+            params = {**params, "_value_snapshot": critic}
+            self._value_snapshot_updates = self.lower._n_updates
+        super().set_parameters(params, exact_match, device)  # type: ignore[arg-type]
 
     def _save_high_level_data(self, path: str) -> None:
         """Trajectories and labelled pairs, as npz (read back without pickle)."""

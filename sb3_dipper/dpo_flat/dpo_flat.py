@@ -37,6 +37,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.hierarchical import sibling_path
+from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
@@ -133,7 +134,7 @@ class _TrajectorySink:
         self.buffer.add(obs, action, next_obs["achieved_goal"], done)
 
 
-class DPOFlat(OffPolicyAlgorithm):
+class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
     """DPO-FLAT (the DIPPER paper's flat baseline): a squashed-Gaussian policy trained only by token-level DPO.
 
     Collection follows SB3's off-policy loop (``num_timesteps`` counts primitive steps, ``rollout/success_rate`` and

@@ -177,6 +177,10 @@ class RAPS(HIER):
         assert self.primitives is not None, "a saved model always carries its primitives"
         self.low_level = self.lower = ScriptedLowLevel(self.primitives)
 
+    def _acting_low_level(self) -> ScriptedLowLevel:
+        """The scripted primitives act as they do in training."""
+        return self.low_level
+
     def learn(
         self: SelfRAPS,
         total_timesteps: int,
