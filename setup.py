@@ -37,8 +37,8 @@ setup(
         "rich",
     ],
     extras_require={
-        # rl-zoo3's enjoy imports requests without declaring it.
-        "zoo": ["rl-zoo3[plots]>=2.9.2,<3", "requests", "pyyaml", "moviepy>=1.0"],
+        # rl-zoo3's enjoy imports requests without declaring it; its -tb (SB3's tensorboard_log) needs tensorboard.
+        "zoo": ["rl-zoo3[plots]>=2.9.2,<3", "requests", "pyyaml", "moviepy>=1.0", "tensorboard>=2.9"],
         "plots": ["matplotlib>=3.7", "pandas>=2.2", "rliable>=1.2"],
         # Reading Minari dataset directories as demonstrations.
         "minari": ["minari[hdf5]>=0.5"],
@@ -53,6 +53,8 @@ setup(
             "types-PyYAML",
             "minari[hdf5]>=0.5",
             "ray>=2.9",
+            # tests/test_sb3_contracts.py trains with tensorboard_log=.
+            "tensorboard>=2.9",
         ],
     },
     entry_points={
