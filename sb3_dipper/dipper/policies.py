@@ -25,6 +25,12 @@ from sb3_dipper.common.losses import squashed_gaussian_log_prob
 class DIPPERPolicy(BasePolicy):
     """Squashed-Gaussian higher-level policy.
 
+    In DIPPER, SB3's attribute ``model.policy`` is this higher level: ``model.policy.predict`` returns a higher-level
+    action in ``[-1, 1]^d`` (a subgoal; ``model.subgoal_space.to_world`` maps it to the goal space), not a primitive
+    action. ``model.predict`` runs both levels, and ``model.export_policy()`` returns them as a
+    :class:`~sb3_dipper.common.hierarchical_policy.HierarchicalPolicy` that acts without the algorithm. (DPO-FLAT uses
+    this class as a flat policy, whose actions are primitive actions.)
+
     :param observation_space: the base env's observation space (a goal env's Dict space)
     :param action_space: the higher-level action space ``[-1, 1]^d``
     :param lr_schedule: learning-rate schedule of the policy optimizer
