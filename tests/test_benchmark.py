@@ -190,3 +190,14 @@ def test_ray_runs(tmp_path, ray_head):
         assert "subgoal_distance" not in data.files
     assert (tmp_path / "figures" / "learning.png").exists()
     assert "<!-- learning:start -->" in (tmp_path / "BENCHMARKS.md").read_text()
+
+
+def test_profiles_measures_training_and_env_rates(capsys):
+    args = argparse.Namespace(envs=[ENV_ID], algos=["dipper", "sac"], steps=200, repeats=1, name="profiles", write=False)
+    benchmark.run_profiles(args)
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
+    assert [row.split(" | ")[1] for row in rows] == ["DIPPER", "SAC+HER"]
+    for row in rows:
+        train_rate, env_rate, to_env = (float(cell) for cell in row.split(" | ")[2:5])
+        assert 0 < train_rate < env_rate and to_env == pytest.approx(train_rate / env_rate, abs=0.01)
+    assert rows[1].endswith("| 1.00 |")

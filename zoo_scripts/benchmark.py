@@ -1,6 +1,7 @@
 """Benchmarks: throughput ratios and learning curves, written to BENCHMARKS.md with command, machine and date.
 
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
+    python zoo_scripts/benchmark.py profiles --write                # steps/s at the paper tasks' CPU profiles
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
     python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set planning=off --name ablations
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick            # every algorithm, <= 1 h
@@ -181,6 +182,65 @@ def run_throughput(args: argparse.Namespace) -> None:
         "| algorithm | ms per step | ratio to SAC+HER |\n|---|---|---|\n" + "\n".join(rows)
     )
     write_section("throughput", body, "python zoo_scripts/benchmark.py throughput " + " ".join(sys.argv[2:]))
+    print(body)
+
+
+def env_steps_per_second(env_id: str, n_envs: int, steps: int) -> float:
+    """Primitive steps per second of the task's vectorised env under uniformly random actions (the limit if updates
+    and acting were free)."""
+    env = make_env(env_id, {"n_envs": n_envs}, seed=0)
+    env.reset()
+    start = time.perf_counter()
+    for _ in range(steps // n_envs):
+        env.step(np.stack([env.action_space.sample() for _ in range(n_envs)]))
+    seconds = time.perf_counter() - start
+    env.close()
+    return (steps // n_envs) * n_envs / seconds
+
+
+def run_profiles(args: argparse.Namespace) -> None:
+    """Training steps per second of each algorithm at each task's CPU profile, beside the env's own step rate.
+
+    The models of one task are warmed up past ``learning_starts``, then trained in interleaved chunks of
+    ``--steps`` primitive steps (the median chunk counts), in this one process, so the ratios share the machine's state.
+    """
+    th.set_num_threads(torch_threads())
+    rows, records = [], []
+    for env_id in args.envs:
+        models = {algo: make_model(algo, env_id, seed=0)[0] for algo in args.algos}
+        n_envs = models[args.algos[0]].n_envs
+        env_rate = env_steps_per_second(env_id, n_envs, args.steps)
+        for model in models.values():
+            model.learn(int(getattr(model, "learning_starts", 0)) + args.steps)
+        seconds: dict[str, list[float]] = {algo: [] for algo in models}
+        order = list(models)
+        for _ in range(args.repeats):
+            random.shuffle(order)
+            for algo in order:
+                start = time.perf_counter()
+                models[algo].learn(args.steps, reset_num_timesteps=False)
+                seconds[algo].append(time.perf_counter() - start)
+        rates = {algo: args.steps / statistics.median(values) for algo, values in seconds.items()}
+        baseline = rates.get("sac")
+        for algo, rate in rates.items():
+            versus_sac = f"{rate / baseline:.2f}" if baseline else "-"
+            ratios = f"{rate / env_rate:.2f} | {versus_sac}"
+            rows.append(f"| `{env_id}` | {LABELS[algo]} | {rate:.0f} | {env_rate:.0f} | {ratios} |")
+            records.append(f"{env_id},{algo},{n_envs},{rate:.2f},{env_rate:.2f}")
+        print(rows[-len(rates) :], flush=True)
+    csv = RESULTS_DIR / f"{args.name}.csv"
+    body = (
+        "Primitive steps per second while training, at each task's CPU profile (`hyperparams/<algo>.yml`), one torch "
+        f"thread, median of {args.repeats} interleaved chunks of {args.steps:,} steps after `learning_starts`, measured "
+        "in one process; the env rate is the same vectorised env under random actions (the limit if updates were "
+        f"free). CSV: `{os.path.relpath(csv, REPO)}`.\n\n"
+        "| task | algorithm | training steps/s | env steps/s | ratio to env | ratio to SAC+HER |\n|---|---|---|---|---|---|\n"
+        + "\n".join(rows)
+    )
+    if args.write:
+        RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+        csv.write_text("env,algo,n_envs,train_steps_per_second,env_steps_per_second\n" + "\n".join(records) + "\n")
+        write_section(args.name, body, "python zoo_scripts/benchmark.py profiles " + " ".join(sys.argv[2:]))
     print(body)
 
 
@@ -474,6 +534,13 @@ def main() -> None:
     throughput.add_argument("--steps", type=int, default=1000)
     throughput.add_argument("--repeats", type=int, default=5)
     throughput.add_argument("--net-arch", type=int, nargs="+", default=[256, 256])
+    profiles = commands.add_parser("profiles", help="training steps/s at each task's CPU profile, vs the env and SAC+HER")
+    profiles.add_argument("--envs", nargs="+", default=CPU_TASKS)
+    profiles.add_argument("--algos", nargs="+", default=["dipper", "sac"])
+    profiles.add_argument("--steps", type=int, default=1000)
+    profiles.add_argument("--repeats", type=int, default=3)
+    profiles.add_argument("--name", default="profiles")
+    profiles.add_argument("--write", action="store_true", help="write the section of BENCHMARKS.md and the CSV")
     learning = commands.add_parser("learning", help="success curves of algorithms x tasks x seeds")
     learning.add_argument("--protocol", choices=sorted(PROTOCOLS), help="preset algorithms, tasks, seeds and budgets")
     # Defaults (None) come from the protocol, then from LEARNING_DEFAULTS; see resolve_protocol.
@@ -496,7 +563,7 @@ def main() -> None:
     learning.add_argument("--benchmarks-md", default=str(BENCHMARKS_MD), help="markdown file the section is written to")
     learning.add_argument("--figures-dir", default=str(RESULTS_DIR), help="directory of the figure")
     args = parser.parse_args()
-    {"throughput": run_throughput, "learning": run_learning}[args.command](args)
+    {"throughput": run_throughput, "profiles": run_profiles, "learning": run_learning}[args.command](args)
 
 
 if __name__ == "__main__":
