@@ -18,6 +18,7 @@ import sys
 import time
 from abc import abstractmethod
 from collections import deque
+from collections.abc import Callable, Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -33,6 +34,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_model_atomically, save_replay_buffer_file
 from sb3_dipper.common.hierarchical_policy import (
     ActingLowLevel,
     HierarchicalPolicy,
@@ -294,10 +296,15 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _load_demonstrations(self) -> DemonstrationBuffer:
         assert self.env is not None and self.subgoal_space is not None and self.demo_path is not None
         if self.demo_path == "auto":
-            env_id = self.env.get_attr("spec", indices=[0])[0].id
-            demonstrations = default_demonstrations(env_id).first_episodes(self.n_demos)
+            spec = self.env.get_attr("spec", indices=[0])[0]
+            if spec is None:
+                raise ValueError('demo_path="auto" needs an env made from a registered id; pass a demonstration file instead')
+            demonstrations = default_demonstrations(spec.id)
         else:
-            demonstrations = load_demonstrations(self.demo_path, self.n_demos)
+            demonstrations = load_demonstrations(self.demo_path)
+        # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
+        demonstrations = demonstrations.first_episodes(self.n_demos)
+        demonstrations.check_spaces(self.observation_space, self.action_space)
         assert isinstance(self.action_space, spaces.Box)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
         scaled_actions = self.lower.policy.scale_action(actions)
@@ -564,23 +571,45 @@ class HierarchicalAlgorithm(CheckedLoading):
         """The lower replay buffer (so that ``CheckpointCallback(save_replay_buffer=True)`` saves the buffers)."""
         return self.lower.replay_buffer
 
-    def save_replay_buffer(self, path: str) -> None:
-        """Save the lower replay buffer (SB3 pickle at ``path``) and the higher level's data beside it."""
-        self.lower.save_replay_buffer(path)
-        self._save_high_level_data(str(path))
+    def save(self, path: Any, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None) -> None:
+        """SB3's ``save``; to a path, the zip is written under a temporary name and renamed into place.
 
-    def load_replay_buffer(self, path: str, truncate_last_traj: bool = True) -> None:
-        """Load what :meth:`save_replay_buffer` wrote, to resume training where it stopped."""
-        self.lower.load_replay_buffer(path, truncate_last_traj=truncate_last_traj)
-        self._load_high_level_data(str(path), truncate_last_traj)
+        A run killed while saving leaves the previous complete zip (or none), never a truncated one.
+        """
+        save_model_atomically(super().save, path, exclude, include)
+
+    def save_replay_buffer(self, path: Any) -> None:
+        """Save the lower replay buffer (SB3's pickle at ``path``) and the higher level's data in files beside it.
+
+        Each file is written under a temporary name and renamed into place, so a run killed while saving leaves every
+        file either complete or absent. Streams are refused (a ``TypeError``): the files beside need a name.
+        """
+        lower_path = replay_buffer_path(path, f"{type(self).__name__}.save_replay_buffer", reading=False)
+        save_replay_buffer_file(lower_path, self.lower.replay_buffer)
+        self._save_high_level_data(str(lower_path))
+
+    def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
+        """Load what :meth:`save_replay_buffer` wrote, to resume training where it stopped.
+
+        All or nothing: every file is read and checked against the model before any buffer is replaced, so on an error
+        (naming the file) the model keeps the buffers it had.
+        """
+        lower_path = replay_buffer_path(path, f"{type(self).__name__}.load_replay_buffer", reading=True)
+        lower_buffer = read_replay_buffer(lower_path, self.lower, truncate_last_traj)
+        install_high_level_data = self._load_high_level_data(str(lower_path), truncate_last_traj)
+        self.lower.replay_buffer = lower_buffer
+        install_high_level_data()
 
     @abstractmethod
     def _save_high_level_data(self, path: str) -> None:
-        """Save the higher level's replay data next to the lower buffer saved at ``path``."""
+        """Save the higher level's replay data next to the lower buffer saved at ``path`` (each file atomically)."""
 
     @abstractmethod
-    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
-        """Load what :meth:`_save_high_level_data` wrote."""
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
+        """Read and check what :meth:`_save_high_level_data` wrote, changing nothing; return what installs it.
+
+        The returned step only assigns what was read, so it cannot fail half-way.
+        """
 
 
 def has_finished_episode(buffer: ReplayBuffer | None) -> bool:

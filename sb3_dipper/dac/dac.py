@@ -47,9 +47,9 @@ clips SAC targets to ``[-1 / (1 - gamma), 0]``; neither is reproduced.)
 
 from __future__ import annotations
 
-import pathlib
+import os
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
@@ -68,6 +68,14 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from torch import nn
 
 from sb3_dipper.common.demonstrations import Demonstrations, load_demonstrations
+from sb3_dipper.common.files import (
+    read_npz,
+    read_replay_buffer,
+    replay_buffer_path,
+    save_model_atomically,
+    save_npz,
+    save_replay_buffer_file,
+)
 from sb3_dipper.common.hierarchical import has_finished_episode, sibling_path
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.validation import as_float, as_int, as_train_freq, check_goal_observation_space
@@ -507,21 +515,11 @@ class DAC(CheckedLoading, SAC):
             spec = self.env.get_attr("spec", indices=[0])[0]
             if spec is None:
                 raise ValueError('demo_path="auto" needs an env made from a registered id; pass a demonstration file instead')
-            demonstrations = default_demonstrations(spec.id).first_episodes(self.n_demos)
+            demonstrations = default_demonstrations(spec.id)
         else:
-            demonstrations = load_demonstrations(self.demo_path, self.n_demos)
-        for key in ("observation", "achieved_goal", "desired_goal"):
-            expected, found = self.observation_space[key].shape, demonstrations.observations[key].shape[1:]  # type: ignore[index]
-            if found != expected:
-                raise ValueError(
-                    f"The demonstrations' {key} has shape {found} but the env's has {expected}: were they recorded on "
-                    "another env? Pass demonstrations of this env as demo_path."
-                )
-        if demonstrations.actions.shape[1:] != self.action_space.shape:
-            raise ValueError(
-                f"The demonstrations' actions have shape {demonstrations.actions.shape[1:]} but the env's have "
-                f"{self.action_space.shape}: were they recorded on another env? Pass demonstrations of this env as demo_path."
-            )
+            demonstrations = load_demonstrations(self.demo_path)
+        demonstrations = demonstrations.first_episodes(self.n_demos)
+        demonstrations.check_spaces(self.observation_space, self.action_space)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
         scaled_actions = self.policy.scale_action(actions)
         time_limit = self._demonstration_time_limit(demonstrations)
@@ -765,16 +763,43 @@ class DAC(CheckedLoading, SAC):
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "discriminator", "discriminator.optimizer"], variables
 
+    def save(self, path: Any, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None) -> None:
+        """SB3's ``save``; to a path, the zip is written under a temporary name and renamed into place."""
+        save_model_atomically(super().save, path, exclude, include)
+
     def save_replay_buffer(self, path: Any) -> None:
-        """SB3's replay buffer (pickle at ``path``) and, beside it, the absorbing self-transitions (npz)."""
-        super().save_replay_buffer(path)
-        if self.absorbing_transitions is not None and isinstance(path, (str, pathlib.Path)):
-            np.savez_compressed(sibling_path(str(path), ".absorbing.npz"), **self.absorbing_transitions.state_dict())  # type: ignore[arg-type]
+        """SB3's replay buffer (pickle at ``path``) and, beside it, the absorbing self-transitions (npz).
+
+        Each file is written under a temporary name and renamed into place. A stream can hold the replay buffer only,
+        so with ``absorbing_states`` streams are refused (a ``TypeError``).
+        """
+        if self.absorbing_transitions is None and not isinstance(path, (str, os.PathLike)):
+            super().save_replay_buffer(path)
+            return
+        buffer_path = replay_buffer_path(path, "DAC.save_replay_buffer", reading=False)
+        save_replay_buffer_file(buffer_path, self.replay_buffer)
+        if self.absorbing_transitions is not None:
+            save_npz(sibling_path(str(buffer_path), ".absorbing.npz"), self.absorbing_transitions.state_dict())
 
     def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
-        super().load_replay_buffer(path, truncate_last_traj)
-        if self.absorbing_transitions is not None and isinstance(path, (str, pathlib.Path)):
-            absorbing_path = pathlib.Path(sibling_path(str(path), ".absorbing.npz"))
-            if absorbing_path.exists():
-                with np.load(absorbing_path, allow_pickle=False) as data:
-                    self.absorbing_transitions.load_state_dict({key: data[key] for key in data.files})
+        """Load what :meth:`save_replay_buffer` wrote; every file is read and checked before anything is replaced."""
+        if self.absorbing_transitions is None and not isinstance(path, (str, os.PathLike)):
+            self.replay_buffer = read_replay_buffer(path, self, truncate_last_traj)
+            return
+        buffer_path = replay_buffer_path(path, "DAC.load_replay_buffer", reading=True)
+        replay_buffer = read_replay_buffer(buffer_path, self, truncate_last_traj)
+        absorbing = None
+        if self.absorbing_transitions is not None:
+            absorbing_path = sibling_path(str(buffer_path), ".absorbing.npz")
+            fix = "save_replay_buffer writes it beside the replay buffer: keep the two together."
+            absorbing = read_npz(absorbing_path, "file of absorbing transitions", fix)
+            found = {key: value.shape for key, value in absorbing.items()}
+            expected = {key: value.shape for key, value in self.absorbing_transitions.state_dict().items()}
+            if found != expected:
+                raise ValueError(
+                    f"The absorbing transitions in {absorbing_path} have shapes {found}, the model's {expected}: were "
+                    "they saved by a model with another buffer_size or env?"
+                )
+        self.replay_buffer = replay_buffer
+        if self.absorbing_transitions is not None and absorbing is not None:
+            self.absorbing_transitions.load_state_dict(absorbing)

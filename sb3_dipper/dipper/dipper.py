@@ -8,6 +8,7 @@ authors' PIPER code (https://github.com/Utsavz/piper), from which the preference
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -27,8 +28,8 @@ from sb3_dipper.common.preferences import (
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
     flat_pair_observations,
-    load_preference_data,
     pairs_due,
+    read_preference_data,
     sample_trajectory_pairs,
     save_preference_data,
     truncate_at_first_arrival,
@@ -508,7 +509,13 @@ class DIPPER(HierarchicalAlgorithm):
         """Trajectories and labelled pairs, as npz (read back without pickle)."""
         save_preference_data(sibling_path(path, ".high.npz"), self.trajectory_buffer, self.preferences)
 
-    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
-        self.preferences = load_preference_data(
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
+        trajectories, preferences = read_preference_data(
             sibling_path(path, ".high.npz"), self.trajectory_buffer, self.n_preference_pairs
         )
+
+        def install() -> None:
+            self.trajectory_buffer.load_state_dict(trajectories)
+            self.preferences = preferences
+
+        return install

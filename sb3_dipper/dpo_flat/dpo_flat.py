@@ -22,6 +22,7 @@ PIPER code has the analogous RFLAT, a flat SAC on a preference-learned reward).
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -36,6 +37,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dipper.common.files import replay_buffer_path, save_model_atomically
 from sb3_dipper.common.hierarchical import sibling_path
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
@@ -414,15 +416,27 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.actor.optimizer"], []
 
+    def save(self, path: Any, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None) -> None:
+        """SB3's ``save``; to a path, the zip is written under a temporary name and renamed into place."""
+        save_model_atomically(super().save, path, exclude, include)
+
     def save_replay_buffer(self, path: Any) -> None:
-        """The stored episodes and labelled pairs, as npz (read without pickle) beside ``path`` (``x.pkl`` -> ``x.npz``)."""
+        """The stored episodes and labelled pairs, as npz (read without pickle) beside ``path`` (``x.pkl`` -> ``x.npz``).
+
+        The file is written under a temporary name and renamed into place. Streams are refused (a ``TypeError``).
+        """
+        path = replay_buffer_path(path, "DPOFlat.save_replay_buffer", reading=False)
         save_preference_data(sibling_path(str(path), ".npz"), self.trajectory_buffer, self.preferences)
 
     def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
-        """Load what :meth:`save_replay_buffer` wrote, to resume training where it stopped."""
+        """Load what :meth:`save_replay_buffer` wrote, to resume training where it stopped.
+
+        The file is read and checked against the model first: on an error (naming the file) nothing is replaced.
+        """
+        path = replay_buffer_path(path, "DPOFlat.load_replay_buffer", reading=True)
         self._ensure_full_trajectory_buffer()
         self.preferences = load_preference_data(
-            sibling_path(str(path), ".npz"), self.trajectory_buffer, self.n_preference_pairs
+            sibling_path(str(path), ".npz"), self.trajectory_buffer, self.n_preference_pairs, self.segment_length
         )
 
 

@@ -8,7 +8,7 @@ preferences avoid.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
 import gymnasium as gym
@@ -22,6 +22,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
+from sb3_dipper.common.files import read_replay_buffer, save_replay_buffer_file
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, has_finished_episode, sibling_path
 from sb3_dipper.common.low_level import LevelLogger, sac_torch_save_params
 from sb3_dipper.common.option_env import DictObs
@@ -307,7 +308,13 @@ class HIER(HierarchicalAlgorithm):
         return [*high_state_dicts, *state_dicts], [*high_variables, *variables]
 
     def _save_high_level_data(self, path: str) -> None:
-        self.higher.save_replay_buffer(sibling_path(path, ".higher.pkl"))
+        """The higher replay buffer, SB3's pickle beside the lower one (``x.pkl`` -> ``x.higher.pkl``), atomically."""
+        save_replay_buffer_file(sibling_path(path, ".higher.pkl"), self.higher.replay_buffer)
 
-    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
-        self.higher.load_replay_buffer(sibling_path(path, ".higher.pkl"), truncate_last_traj=truncate_last_traj)
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
+        higher_buffer = read_replay_buffer(sibling_path(path, ".higher.pkl"), self.higher, truncate_last_traj)
+
+        def install() -> None:
+            self.higher.replay_buffer = higher_buffer
+
+        return install

@@ -31,6 +31,7 @@ Differences from the authors' code, and why:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -52,8 +53,8 @@ from sb3_dipper.common.preferences import (
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
     flat_pair_observations,
-    load_preference_data,
     pairs_due,
+    read_preference_data,
     sample_trajectory_pairs,
     save_preference_data,
 )
@@ -466,11 +467,18 @@ class PIPER(HIER):
         super()._save_high_level_data(path)
         save_preference_data(sibling_path(path, ".high.npz"), self.trajectory_buffer, self.preferences)
 
-    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> None:
-        super()._load_high_level_data(path, truncate_last_traj)
-        self.preferences = load_preference_data(
+    def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
+        install_higher_buffer = super()._load_high_level_data(path, truncate_last_traj)
+        trajectories, preferences = read_preference_data(
             sibling_path(path, ".high.npz"), self.trajectory_buffer, self.n_preference_pairs
         )
+
+        def install() -> None:
+            install_higher_buffer()
+            self.trajectory_buffer.load_state_dict(trajectories)
+            self.preferences = preferences
+
+        return install
 
 
 def _higher_her_kwargs(high_replay_buffer_kwargs: dict[str, Any] | None, high_her: bool) -> dict[str, Any]:

@@ -16,6 +16,7 @@ used directly as the action): see :mod:`sb3_dipper.raps.primitives`.
 
 from __future__ import annotations
 
+import os
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -24,6 +25,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
+from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.low_level import sac_torch_save_params
 from sb3_dipper.common.option_env import DictObs, PrimitiveTransition
@@ -211,8 +213,16 @@ class RAPS(HIER):
         """The higher replay buffer, the only one (so that ``CheckpointCallback(save_replay_buffer=True)`` saves it)."""
         return self.higher.replay_buffer
 
-    def save_replay_buffer(self, path: str) -> None:
-        self.higher.save_replay_buffer(path)
+    def save_replay_buffer(self, path: Any) -> None:
+        """The higher replay buffer as SB3 pickles it; a file is written under a temporary name and renamed into place."""
+        if isinstance(path, (str, os.PathLike)):
+            path = replay_buffer_path(path, "RAPS.save_replay_buffer", reading=False)
+            save_replay_buffer_file(path, self.higher.replay_buffer)
+        else:
+            self.higher.save_replay_buffer(path)
 
-    def load_replay_buffer(self, path: str, truncate_last_traj: bool = True) -> None:
-        self.higher.load_replay_buffer(path, truncate_last_traj=truncate_last_traj)
+    def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
+        """Load what :meth:`save_replay_buffer` wrote; it is checked against the model before it replaces anything."""
+        if isinstance(path, (str, os.PathLike)):
+            path = replay_buffer_path(path, "RAPS.load_replay_buffer", reading=True)
+        self.higher.replay_buffer = read_replay_buffer(path, self.higher, truncate_last_traj)
