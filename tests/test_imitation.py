@@ -83,17 +83,24 @@ def test_a_minari_dataset_directory_is_read(maze_demos, tmp_path):
     np.testing.assert_array_equal(loaded.successes, demos.successes)
 
 
-def test_demo_subgoals_are_relabelled_within_the_option_horizon(maze_demos):
+def test_demo_subgoals_are_later_achieved_subgoals_or_the_demos_own_goal(maze_demos):
+    """PIPER's rule: 80 % a later achieved subgoal of the same episode (however far), 20 % the demonstration's goal."""
     demos = load_demonstrations(maze_demos)
     space = SubgoalSpace(np.full(2, -3.5), np.full(2, 3.5), threshold=0.45)
-    buffer = DemonstrationBuffer(demos, space, horizon=5, scaled_actions=demos.actions)
+    buffer = DemonstrationBuffer(demos, space, scaled_actions=demos.actions)
     np.random.seed(0)
-    observations, _, next_observations, rewards = buffer.sample(256)
-    achieved_later = buffer.next_achieved
-    for row in range(256):
+    observations, _, next_observations, rewards = buffer.sample(2000)
+    relabelled, far = 0, 0
+    for row in range(2000):
         step = int(np.flatnonzero(np.all(buffer.observation == observations["observation"][row], axis=1))[0])
-        window = achieved_later[step : min(step + 5, buffer.last_step[step] + 1)]
-        assert np.any(np.all(window == observations["desired_goal"][row], axis=1))
+        later = buffer.next_achieved[step : buffer.last_step[step] + 1]
+        goal = observations["desired_goal"][row]
+        is_later = bool(np.any(np.all(later == goal, axis=1)))
+        assert is_later or np.array_equal(goal, buffer.desired[step])
+        relabelled += is_later
+        far += is_later and not np.any(np.all(later[:5] == goal, axis=1))
+    assert relabelled / 2000 == pytest.approx(0.8, abs=0.04)
+    assert far > 0  # beyond the next K = 5 steps: the old within-option rule never drew these
     distance = np.linalg.norm(next_observations["achieved_goal"] - observations["desired_goal"], axis=1)
     np.testing.assert_array_equal(rewards, -(distance > 0.45).astype(np.float32))
     np.testing.assert_array_equal(next_observations["desired_goal"], observations["desired_goal"])

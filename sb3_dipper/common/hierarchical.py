@@ -308,7 +308,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         assert isinstance(self.action_space, spaces.Box)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
         scaled_actions = self.lower.policy.scale_action(actions)
-        return DemonstrationBuffer(demonstrations, self.subgoal_space, self.option_steps, scaled_actions)
+        return DemonstrationBuffer(demonstrations, self.subgoal_space, scaled_actions)
 
     @abstractmethod
     def _setup_high_level(self) -> None:

@@ -1,8 +1,11 @@
 """Q-filtered behaviour cloning on the lower level from demonstrations (the authors' PIPER code, used by DIPPER).
 
 Each lower-level batch mixes replay transitions with demonstration transitions (a ``demo_share`` of the batch). The
-demonstrations are relabelled as HER relabels replay: the subgoal of a demo step is an achieved subgoal of the same
-episode at most ``horizon`` (K) steps later, so the demo teaches the lower level to reach the kind of subgoals it gets.
+demonstrations are relabelled as the authors' PIPER code relabels its demonstration episode (HER's "future" strategy
+over the whole episode, ``future_p = 0.8``): with probability 0.8 the subgoal of a demo step is the achieved subgoal
+after a uniformly drawn later step of the same episode (however far), otherwise the demonstration's own goal. Far goals
+are what teach the first steps of a demonstration: on pick-and-place the object rests for the first ten steps, so a
+goal from the next K steps would pair the approach and the grasp only with "leave the object where it is".
 Both parts train the critic; the actor loss is
 
     rl_coef * mean(alpha * log pi - min_i Q_i(s, pi(s)))  +  bc_coef * sum_{demo, Q-filter} ||mu(s) - a_demo||^2
@@ -30,21 +33,29 @@ from sb3_dipper.common.subgoals import SubgoalSpace
 
 
 class DemonstrationBuffer:
-    """Lower-level transitions of demonstrations, sampled with subgoals relabelled from the next ``horizon`` steps.
+    """Lower-level transitions of demonstrations, sampled with subgoals relabelled from later in their episode.
 
     :param demonstrations: the episodes
     :param subgoal_space: projects achieved goals to subgoals and gives the subgoal reward
-    :param horizon: K, how far ahead a relabelled subgoal may lie
     :param scaled_actions: the demonstrated actions rescaled to the lower policy's [-1, 1] action space
+    :param relabel_prob: probability that a sampled step's subgoal is a later achieved subgoal of its episode instead
+        of the demonstration's own goal (PIPER's ``future_p``, 0.8)
     """
 
-    def __init__(self, demonstrations: Demonstrations, subgoal_space: SubgoalSpace, horizon: int, scaled_actions: np.ndarray):
+    def __init__(
+        self,
+        demonstrations: Demonstrations,
+        subgoal_space: SubgoalSpace,
+        scaled_actions: np.ndarray,
+        relabel_prob: float = 0.8,
+    ):
         self.subgoal_space = subgoal_space
-        self.horizon = horizon
+        self.relabel_prob = relabel_prob
         self.observation = demonstrations.observations["observation"].astype(np.float32)
         self.next_observation = demonstrations.next_observations["observation"].astype(np.float32)
         self.achieved = subgoal_space.project(demonstrations.observations["achieved_goal"]).astype(np.float32)
         self.next_achieved = subgoal_space.project(demonstrations.next_observations["achieved_goal"]).astype(np.float32)
+        self.desired = subgoal_space.project(demonstrations.observations["desired_goal"]).astype(np.float32)
         self.actions = scaled_actions.astype(np.float32)
         ends = np.cumsum(demonstrations.episode_lengths)
         self.last_step = np.repeat(ends - 1, demonstrations.episode_lengths)
@@ -55,8 +66,10 @@ class DemonstrationBuffer:
     def sample(self, batch_size: int) -> tuple[dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray], np.ndarray]:
         """``(observations, actions, next_observations, rewards)`` of ``batch_size`` relabelled demo steps."""
         steps = np.random.randint(len(self), size=batch_size)
-        goal_steps = np.minimum(steps + np.random.randint(self.horizon, size=batch_size), self.last_step[steps])
-        goals = self.next_achieved[goal_steps]
+        # A later step t' in [t, end of episode], uniformly: its next achieved goal is reached at or after t + 1.
+        goal_steps = steps + (np.random.random(batch_size) * (self.last_step[steps] - steps + 1)).astype(np.int64)
+        relabel = np.random.random(batch_size) < self.relabel_prob
+        goals = np.where(relabel[:, None], self.next_achieved[goal_steps], self.desired[steps])
         observations = {"observation": self.observation[steps], "achieved_goal": self.achieved[steps], "desired_goal": goals}
         next_observations = {
             "observation": self.next_observation[steps],
