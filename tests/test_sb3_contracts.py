@@ -212,16 +212,7 @@ def test_the_lower_levels_env_has_no_render_mode_and_says_nothing(maze_env):
     assert render_mode_warnings(lambda: SubgoalVecEnv(space, maze_env.action_space, model.subgoal_space, 2)) == []
 
 
-# HIER's higher level runs on hier.py's OptionGoalVecEnv, which still warns (its render_mode is not set).
-@pytest.mark.parametrize(
-    "model_class",
-    [
-        pytest.param(model_class, marks=pytest.mark.xfail(reason="OptionGoalVecEnv has no render_mode"))
-        if issubclass(model_class, HIER)
-        else model_class
-        for model_class in ALL_ALGORITHMS
-    ],
-)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_building_a_model_emits_no_render_mode_warning(model_class, maze_env):
     assert render_mode_warnings(lambda: any_tiny_model(model_class, maze_env)) == []
 

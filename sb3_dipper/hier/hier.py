@@ -45,6 +45,8 @@ class OptionGoalVecEnv(VecEnv):
     """
 
     def __init__(self, observation_space: spaces.Dict, action_space: spaces.Box, base_env: VecEnv | None, num_envs: int):
+        # VecEnv.__init__ asks the envs for their render_mode and warns when there is none; this facade renders nothing.
+        self.render_mode = None
         super().__init__(num_envs, observation_space, action_space)
         self.base_env = base_env
 
