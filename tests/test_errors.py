@@ -61,7 +61,8 @@ def test_an_unknown_policy_name_is_refused(model_class, maze_env):
 @pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
 def test_a_mismatched_env_at_load_is_refused(model_class, tmp_path, maze_env):
     tiny_model(model_class, maze_env).save(tmp_path / "model")
-    other = gym.make("FetchReach-v4")
+    # The same episode length as the maze, so the spaces check (not the time-limit check) speaks.
+    other = gym.make("FetchReach-v4", max_episode_steps=20)
     with pytest.raises(ValueError, match="spaces do not match"):
         model_class.load(tmp_path / "model", env=other)
 
@@ -87,10 +88,22 @@ def test_an_env_without_time_limit_needs_max_episode_steps():
         HIER("MlpPolicy", env)
 
 
+class UnboundedGoalEnv(gym.Env):
+    """A sparse goal env that declares no subgoal space, with unbounded goals and no ``distance_threshold``."""
+
+    observation_space = spaces.Dict(
+        {key: spaces.Box(-np.inf, np.inf, (2,)) for key in ("observation", "achieved_goal", "desired_goal")}
+    )
+    action_space = spaces.Box(-1, 1, (2,))
+    spec = gym.envs.registration.EnvSpec("UnboundedGoal-v0", max_episode_steps=10)
+
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        return -(np.linalg.norm(achieved_goal - desired_goal, axis=-1) > 0.1).astype(np.float32)
+
+
 def test_an_env_without_a_known_subgoal_space():
-    env = gym.make("FetchReach-v4")
-    with pytest.raises(ValueError, match="No subgoal space is known for env 'FetchReach-v4'"):
-        HIER("MlpPolicy", env)
+    with pytest.raises(ValueError, match="No subgoal space is known for env 'UnboundedGoal-v0'"):
+        HIER("MlpPolicy", UnboundedGoalEnv())
 
 
 def test_learn_without_env_explains_itself(tmp_path, maze_env):

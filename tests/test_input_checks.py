@@ -23,6 +23,8 @@ NON_NEGATIVE = "must be a finite number >= 0"
 DISCOUNT = r"must be a finite number in \(0, 1\]"
 PROBABILITY = r"must be a finite number in \[0, 1\]"
 
+NOT_DAC = [model for model in ALL_ALGORITHMS if model is not DAC and "gamma" in inspect.signature(model).parameters]
+
 # (parameter, bad value, what the message says after the parameter's name, the classes if not all that have it)
 BAD_SETTINGS = [
     ("beta", 0.0, POSITIVE, None),
@@ -38,9 +40,13 @@ BAD_SETTINGS = [
     ("train_freq", 0, "must be at least 1", None),
     ("option_steps", 2.5, r"must be a whole number \(an integer >= 1\)", None),
     ("max_episode_steps", 0, "must be at least 1", None),
-    ("gamma", 0.0, DISCOUNT, None),
-    ("gamma", 1.5, DISCOUNT, None),
-    ("gamma", NAN, DISCOUNT, None),
+    # DAC is a flat SB3 SAC, where gamma = 0 (a bandit) is meaningful: [0, 1] there.
+    ("gamma", 0.0, DISCOUNT, NOT_DAC),
+    ("gamma", 1.5, DISCOUNT, NOT_DAC),
+    ("gamma", NAN, DISCOUNT, NOT_DAC),
+    ("gamma", -0.1, PROBABILITY, [DAC]),
+    ("gamma", 1.5, PROBABILITY, [DAC]),
+    ("gamma", NAN, PROBABILITY, [DAC]),
     ("high_gamma", 1.5, DISCOUNT, None),
     ("tau", 0.0, DISCOUNT, None),
     ("high_tau", 2.0, DISCOUNT, None),

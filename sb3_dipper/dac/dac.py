@@ -415,7 +415,8 @@ class DAC(CheckedLoading, SAC):
         learning_starts = as_int("learning_starts", learning_starts, 0)
         batch_size = as_int("batch_size", batch_size, 1)
         tau = as_float("tau", tau, 0.0, 1.0, low_open=True)
-        gamma = as_float("gamma", gamma, 0.0, 1.0, low_open=True)
+        # SB3's SAC range: gamma = 0 (a bandit) is meaningful for a flat learner.
+        gamma = as_float("gamma", gamma, 0.0, 1.0)
         train_freq = as_train_freq(train_freq)
         gradient_steps = as_int("gradient_steps", gradient_steps, -1, "-1: as many as environment steps collected")
         target_update_interval = as_int("target_update_interval", target_update_interval, 1)
