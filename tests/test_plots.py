@@ -1,4 +1,7 @@
-"""``zoo_scripts/plot.py``: figures from hand-written zoo log folders, and from the logs of a real ``train`` run."""
+"""``zoo_scripts/plot.py``: figures from hand-written zoo log folders, one or several (a benchmark's seed folders).
+
+Real zoo runs, written by ``benchmark.py learning``, are plotted in tests/test_benchmark.py.
+"""
 
 import json
 import sys
@@ -6,7 +9,6 @@ import sys
 import numpy as np
 import pytest
 
-from tests.test_zoo import ENV_ID, TINY_PARAMS, zoo
 from zoo_scripts import plot
 
 ENVS = ["MazeA-v0", "MazeB-v0"]
@@ -14,9 +16,9 @@ SEEDS = [0, 1]
 STEPS = np.arange(1, 6) * 1000
 
 
-def write_run(folder, algo, env_id, seed, evaluations=True, hierarchical=True):
+def write_run(folder, algo, env_id, seed, evaluations=True, hierarchical=True, run_id=None):
     """One zoo run folder: evaluations.npz, a monitor file with is_success, and an SB3 progress.csv."""
-    run = folder / algo / f"{env_id}_{seed + 1}"
+    run = folder / algo / f"{env_id}_{run_id or seed + 1}"
     run.mkdir(parents=True)
     rng = np.random.default_rng(seed)
     success = np.clip(np.linspace(0, 1, len(STEPS))[:, None] + rng.normal(0, 0.1, (len(STEPS), 4)), 0, 1).round()
@@ -52,7 +54,7 @@ def logs(tmp_path):
 
 
 def test_success_figure_has_a_line_and_a_band_per_algorithm_in_every_panel(logs, tmp_path):
-    fig = plot.plot_success(logs, ["dipper", "sac"], ENVS, window=10)
+    fig = plot.plot_success([logs], ["dipper", "sac"], ENVS, window=10)
     assert [ax.get_title() for ax in fig.axes] == ENVS
     for ax in fig.axes:
         assert [line.get_label() for line in ax.get_lines()] == ["DIPPER", "SAC+HER"]
@@ -64,24 +66,24 @@ def test_success_figure_has_a_line_and_a_band_per_algorithm_in_every_panel(logs,
 
 
 def test_success_is_the_mean_over_seeds_and_monitor_runs_are_smoothed(logs):
-    dipper_runs = plot.find_runs(logs, "dipper", ENVS[0])
+    dipper_runs = plot.find_runs([logs], "dipper", ENVS[0])
     steps, mean, std = plot.aggregate([plot.success_curve(run) for run in dipper_runs])
     expected = np.stack([np.load(run / "evaluations.npz")["successes"].mean(axis=1) for run in dipper_runs])
     np.testing.assert_allclose(mean, expected.mean(axis=0))
     np.testing.assert_allclose(std, expected.std(axis=0))
-    steps, success = plot.success_curve(plot.find_runs(logs, "sac", ENVS[0])[0], window=10)
+    steps, success = plot.success_curve(plot.find_runs([logs], "sac", ENVS[0])[0], window=10)
     np.testing.assert_array_equal(steps, np.arange(1, 101) * 50)
     assert success[60] == 0 and success[65] == pytest.approx(0.5) and success[-1] == 1
 
 
 def test_hierarchical_metrics_skip_algorithms_without_them(logs):
-    fig = plot.plot_hierarchical_metrics(logs, ["dipper", "sac"], ENVS)
+    fig = plot.plot_hierarchical_metrics([logs], ["dipper", "sac"], ENVS)
     assert fig is not None and len(fig.axes) == 4
     for ax in fig.axes:
         assert [line.get_label() for line in ax.get_lines()] == ["DIPPER"]
     low_value = fig.axes[2].get_lines()[0]
     np.testing.assert_array_equal(low_value.get_xdata(), STEPS[1:])  # the empty cells are dropped
-    assert plot.plot_hierarchical_metrics(logs, ["sac"], ENVS) is None
+    assert plot.plot_hierarchical_metrics([logs], ["sac"], ENVS) is None
 
 
 def test_cli_writes_every_figure_and_the_iqm_table(logs, tmp_path, monkeypatch, capsys):
@@ -96,7 +98,7 @@ def test_cli_writes_every_figure_and_the_iqm_table(logs, tmp_path, monkeypatch, 
 
 
 def test_iqm_has_one_bar_per_algorithm_and_env(logs):
-    table = plot.final_success_iqm(logs, ["dipper", "sac"], ENVS, window=10, reps=50)
+    table = plot.final_success_iqm([logs], ["dipper", "sac"], ENVS, window=10, reps=50)
     assert len(table) == 4 and (table["n_runs"] == 2).all()
     assert ((table["low"] <= table["iqm"]) & (table["iqm"] <= table["high"])).all()
     assert table.set_index(["algo", "env"]).loc[("sac", ENVS[0]), "iqm"] == 1  # the last 10 episodes all succeeded
@@ -106,7 +108,7 @@ def test_iqm_has_one_bar_per_algorithm_and_env(logs):
 
 def test_a_missing_run_folder_is_a_clear_error(logs, tmp_path, monkeypatch, capsys):
     with pytest.raises(FileNotFoundError, match="no runs of hier on MazeA-v0"):
-        plot.find_runs(logs, "hier", "MazeA-v0")
+        plot.find_runs([logs], "hier", "MazeA-v0")
     argv = ["plot.py", "-f", str(logs), "--algos", "dipper", "--envs", "MazeC-v0", "--out", str(tmp_path / "figures")]
     monkeypatch.setattr(sys, "argv", argv)
     with pytest.raises(SystemExit) as exit_info:
@@ -115,21 +117,38 @@ def test_a_missing_run_folder_is_a_clear_error(logs, tmp_path, monkeypatch, caps
     assert "no runs of dipper on MazeC-v0" in capsys.readouterr().err
     (logs / "dipper" / "MazeC-v0_1").mkdir()
     with pytest.raises(FileNotFoundError, match="has no success data"):
-        plot.plot_success(logs, ["dipper"], ["MazeC-v0"])
+        plot.plot_success([logs], ["dipper"], ["MazeC-v0"])
 
 
-def test_plots_the_logs_of_a_real_zoo_run(tmp_path):
-    trained = zoo(
-        "train", "--algo", "dipper", "--env", ENV_ID, "-n", "300", "--seed", "0", "-f", "logs", "--eval-freq", "100",
-        "--eval-episodes", "2", "--env-kwargs", "max_episode_steps:50", "-params", *TINY_PARAMS["dipper"], cwd=tmp_path,
-    )  # fmt: skip
-    assert trained.returncode == 0, trained.stderr[-3000:]
-    logs = tmp_path / "logs"
-    fig = plot.plot_success(logs, ["dipper"], [ENV_ID])
-    np.testing.assert_array_equal(fig.axes[0].get_lines()[0].get_xdata(), [100, 200, 300])
-    assert plot.save(fig, tmp_path / "figures" / "success", ["png"])[0].exists()
-    table = plot.final_success_iqm(logs, ["dipper"], [ENV_ID], reps=20)
-    assert table["n_runs"].tolist() == [1] and 0 <= table["iqm"][0] <= 1
-    # Our YAML's CSVProgressCallback writes progress.csv into the run folder: the hierarchical metrics are plotted.
-    metrics = plot.plot_hierarchical_metrics(logs, ["dipper"], [ENV_ID])
-    assert metrics is not None and all(len(ax.get_lines()) == 1 for ax in metrics.axes)
+def test_seeds_in_several_log_folders_as_benchmark_py_writes_them(tmp_path, monkeypatch, capsys):
+    """``-f`` takes several log folders (a benchmark's ``<out>/<variant>/seed_<n>``): their runs are the seeds."""
+    seed_folders = [tmp_path / "benchmark" / "default" / f"seed_{seed}" for seed in SEEDS]
+    for seed, folder in zip(SEEDS, seed_folders, strict=True):
+        write_run(folder, "dipper", ENVS[0], seed, run_id=1)
+    runs = plot.find_runs(seed_folders, "dipper", ENVS[0])
+    assert runs == [folder / "dipper" / f"{ENVS[0]}_1" for folder in seed_folders]
+    out = tmp_path / "figures"
+    argv = ["plot.py", "-f", *map(str, seed_folders), "--algos", "dipper", "--envs", ENVS[0], "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", [*argv, "--format", "png"])
+    plot.main()
+    assert {path.name for path in out.iterdir()} == {"success.png", "hierarchical_metrics.png"}
+    fig = plot.plot_success(seed_folders, ["dipper"], [ENVS[0]])
+    expected = np.mean([np.load(run / "evaluations.npz")["successes"].mean(axis=1) for run in runs], axis=0)
+    np.testing.assert_allclose(fig.axes[0].get_lines()[0].get_ydata(), expected)
+
+
+def test_a_run_still_going_cuts_the_curves_at_the_evaluations_every_seed_has():
+    finished, going = (STEPS.astype(float), np.linspace(0, 1, 5)), (STEPS[:3].astype(float), np.full(3, 0.5))
+    steps, values = plot.align([finished, going])
+    np.testing.assert_array_equal(steps, STEPS[:3])
+    np.testing.assert_allclose(values, [[0, 0.25, 0.5], [0.5, 0.5, 0.5]])
+    # Curves measured at other steps are interpolated over the range both cover.
+    steps, values = plot.align([finished, (np.array([1500.0, 2500.0]), np.array([0.0, 1.0]))], n_points=3)
+    np.testing.assert_array_equal(steps, [1500, 2000, 2500])
+    np.testing.assert_allclose(values[1], [0, 0.5, 1])
+
+
+def test_logged_values_are_read_at_or_before_a_step():
+    curve = (np.array([100.0, 300.0]), np.array([1.0, 2.0]))
+    assert [plot.value_at(curve, step) for step in (300, 299, 1000)] == [2.0, 1.0, 2.0]
+    assert np.isnan(plot.value_at(curve, 99)) and np.isnan(plot.value_at(None, 100))

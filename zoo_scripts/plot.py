@@ -2,9 +2,12 @@
 
     python zoo_scripts/plot.py -f logs --algos dipper hier sac --envs PointMazeFourRooms-v0 --out figures/
     python zoo_scripts/plot.py -f logs --algos dipper hier sac --envs FetchPush-v4 FetchPickAndPlace-v4 --iqm --format png
+    python zoo_scripts/plot.py -f runs/quick/default/seed_* --algos dipper sac --envs PointMazeFourRooms-v0   # benchmark
 
-Runs are the zoo's folders ``<log_folder>/<algo>/<env_id>_<n>[_<uuid>]/``; the runs of one algorithm on one env are its
-seeds. Written to ``--out``:
+Runs are the zoo's folders ``<log_folder>/<algo>/<env_id>_<n>[_<uuid>]/``; the runs of one algorithm on one env in all
+the ``-f`` folders are its seeds (``zoo_scripts/benchmark.py learning`` gives each seed its own log folder,
+``<out>/<variant>/seed_<n>``). This module is the one reader of run folders: ``benchmark.py`` reports through its
+loaders and draws its figure with :func:`draw_success`. Written to ``--out``:
 
 - ``success.{png,pdf}`` (the look of Figure 2 of the DIPPER paper): success rate against primitive steps, mean and a
   standard-deviation band over seeds, one line per algorithm, one panel per env. The success rate comes from the
@@ -19,7 +22,9 @@ seeds. Written to ``--out``:
 from __future__ import annotations
 
 import argparse
+import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -53,31 +58,49 @@ HIERARCHICAL_METRICS = {"rollout/subgoal_distance": "distance to the subgoal", "
 STEPS_KEY = "time/total_timesteps"
 
 
-def label(algo: str) -> str:
-    return LABELS.get(algo, algo)
+def label(name: str) -> str:
+    """The legend name of an algorithm, or of ``<algo>-<variant>`` (a benchmark variant): ``DIPPER (no-planning)``."""
+    algo, _, variant = name.partition("-")
+    return LABELS.get(algo, algo) + (f" ({variant})" if variant else "")
 
 
-def find_runs(log_folder: Path, algo: str, env_id: str) -> list[Path]:
-    """The zoo's run folders of ``algo`` on ``env_id``, in run order; a clear error when there are none."""
-    algo_folder = Path(log_folder) / algo
+def zoo_runs(log_folder: Path, algo: str, env_id: str) -> list[Path]:
+    """The zoo's run folders ``<log_folder>/<algo>/<env_id>_<n>[_<uuid>]`` of ``algo`` on ``env_id``, in run order."""
     pattern = re.compile(rf"{re.escape(env_id)}_(\d+)(_.*)?")
-    numbered = [(pattern.fullmatch(path.name), path) for path in algo_folder.glob(f"{env_id}_*") if path.is_dir()]
-    runs = [path for _, path in sorted((int(match[1]), path) for match, path in numbered if match is not None)]
+    numbered = [(pattern.fullmatch(path.name), path) for path in (Path(log_folder) / algo).glob(f"{env_id}_*")]
+    return [path for _, path in sorted((int(match[1]), path) for match, path in numbered if match and path.is_dir())]
+
+
+def find_runs(log_folders: Sequence[Path], algo: str, env_id: str) -> list[Path]:
+    """The runs of ``algo`` on ``env_id`` in every log folder (its seeds); a clear error when there are none."""
+    runs = [run for folder in log_folders for run in zoo_runs(folder, algo, env_id)]
     if not runs:
-        found = sorted(path.name for path in algo_folder.iterdir()) if algo_folder.is_dir() else []
+        algo_folders = [Path(folder) / algo for folder in log_folders]
+        searched = ", ".join(f"{folder}/" for folder in algo_folders)
+        found = sorted({path.name for folder in algo_folders if folder.is_dir() for path in folder.iterdir()})
         raise FileNotFoundError(
-            f"no runs of {algo} on {env_id} in {algo_folder}/ (expected folders {env_id}_<n>; found {found or 'nothing'})"
+            f"no runs of {algo} on {env_id} in {searched} (expected folders {env_id}_<n>; found {found or 'nothing'})"
         )
     return runs
 
 
+def evaluation_curve(run: Path) -> Curve | None:
+    """Deterministic success rate against primitive steps from the run's ``evaluations.npz`` (the ``successes`` that
+    SB3's ``EvalCallback`` records when the env reports ``info["is_success"]``), or None before the first evaluation."""
+    evaluations = run / "evaluations.npz"
+    if not evaluations.exists():
+        return None
+    with np.load(evaluations) as data:
+        if "successes" not in data or data["successes"].size == 0:
+            return None
+        return data["timesteps"].astype(float), data["successes"].mean(axis=1)
+
+
 def success_curve(run: Path, window: int = 100) -> Curve:
     """Success rate against primitive steps of one run: its evaluations, else its smoothed training episodes."""
-    evaluations = run / "evaluations.npz"
-    if evaluations.exists():
-        with np.load(evaluations) as data:
-            if "successes" in data and data["successes"].size > 0:
-                return data["timesteps"].astype(float), data["successes"].mean(axis=1)
+    evaluations = evaluation_curve(run)
+    if evaluations is not None:
+        return evaluations
     try:
         episodes = load_results(str(run))
     except LoadMonitorResultsError:
@@ -99,24 +122,35 @@ def final_success(run: Path, window: int = 100) -> float:
     return float(success_curve(run, window)[1][-1])
 
 
-def aggregate(curves: list[Curve], n_points: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean and standard deviation over seeds; seeds that were not measured at the same steps are interpolated.
+def align(curves: list[Curve], n_points: int = 100) -> tuple[np.ndarray, np.ndarray]:
+    """The seeds' curves at common steps: ``(steps, values)`` with ``values`` of shape ``(seeds, steps)``.
 
-    Only the steps every seed reached are kept, so the mean never mixes a different number of seeds along the curve.
+    Seeds measured at the same steps, some not as far yet (a run still going), keep the steps every seed has reached.
+    Seeds measured at different steps are interpolated over the range every seed covers. Either way the mean never
+    mixes a different number of seeds along the curve.
     """
-    if all(len(x) == len(curves[0][0]) and np.array_equal(x, curves[0][0]) for x, _ in curves):
-        steps, values = curves[0][0], np.stack([y for _, y in curves])
-    else:
-        start, end = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
-        steps = np.linspace(start, end, n_points) if end > start else np.array([end])
-        values = np.stack([np.interp(steps, x, y) for x, y in curves])
+    length = min(len(x) for x, _ in curves)
+    if all(np.array_equal(x[:length], curves[0][0][:length]) for x, _ in curves):
+        return curves[0][0][:length], np.stack([y[:length] for _, y in curves])
+    start, end = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
+    steps = np.linspace(start, end, n_points) if end > start else np.array([end])
+    return steps, np.stack([np.interp(steps, x, y) for x, y in curves])
+
+
+def aggregate(curves: list[Curve], n_points: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and standard deviation over seeds at the steps :func:`align` keeps: ``(steps, mean, std)``."""
+    steps, values = align(curves, n_points)
     return steps, values.mean(axis=0), values.std(axis=0)
 
 
-def _colors(algos: list[str]) -> dict[str, str]:
-    """One color per algorithm, the same in every panel and figure."""
-    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    return {algo: cycle[i % len(cycle)] for i, algo in enumerate(algos)}
+def _colors(names: list[str]) -> dict[str, tuple[float, ...]]:
+    """One color per line name, the same in every panel and figure.
+
+    tab20's even colors are tab10's (matplotlib's default cycle); its lighter odd ones serve past the tenth name (the
+    full comparison has eleven algorithms).
+    """
+    colormap = plt.get_cmap("tab20")
+    return {name: colormap((2 * index) % 20 + (2 * index) // 20) for index, name in enumerate(names)}
 
 
 def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
@@ -126,23 +160,42 @@ def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
         for handle, text in zip(*ax.get_legend_handles_labels(), strict=True):
             entries.setdefault(text, handle)
     fig.tight_layout(rect=(0, 0.45 / fig.get_figheight(), 1, 1))  # half an inch for the legend
-    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=min(len(entries), 6), frameon=False)
+    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=max(1, min(len(entries), 6)), frameon=False)
 
 
-def plot_success(log_folder: Path, algos: list[str], envs: list[str], window: int = 100) -> Figure:
-    """Success rate against primitive steps: mean and standard-deviation band over seeds, one panel per env."""
-    colors = _colors(algos)
-    fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 3.4), squeeze=False, sharey=True)
-    for ax, env_id in zip(axes[0], envs, strict=True):
-        for algo in algos:
-            steps, mean, std = aggregate([success_curve(run, window) for run in find_runs(log_folder, algo, env_id)])
-            ax.plot(steps, mean, color=colors[algo], label=label(algo))
-            ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[algo], alpha=0.2)
+def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
+    """Success rate against primitive steps, one panel per env (four to a row), one line per name in it.
+
+    :param panels: per env id, the seeds' success curves of each line, keyed by algorithm (or ``<algo>-<variant>``)
+        name; each line is the mean over seeds with a band of one standard deviation (:func:`aggregate`)
+    """
+    names = list(dict.fromkeys(name for lines in panels.values() for name in lines))
+    colors = _colors(names)
+    columns = min(len(panels), 4)
+    rows = math.ceil(len(panels) / columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.4 * rows), squeeze=False, sharey=True)
+    for ax, (env_id, lines) in zip(axes.flat, panels.items(), strict=False):
+        for name, curves in lines.items():
+            steps, mean, std = aggregate(curves)
+            ax.plot(steps, mean, color=colors[name], label=label(name))
+            ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[name], alpha=0.2)
         ax.set(title=env_id, xlabel="primitive steps", ylim=(-0.02, 1.02))
         ax.grid(alpha=0.3)
-    axes[0, 0].set_ylabel("success rate")
+    for ax in axes.flat[len(panels) :]:
+        ax.set_axis_off()
+    for ax in axes[:, 0]:
+        ax.set_ylabel("success rate")
     _shared_legend(fig, axes)
     return fig
+
+
+def plot_success(log_folders: Sequence[Path], algos: list[str], envs: list[str], window: int = 100) -> Figure:
+    """Success rate against primitive steps: mean and standard-deviation band over seeds, one panel per env."""
+    panels = {
+        env_id: {algo: [success_curve(run, window) for run in find_runs(log_folders, algo, env_id)] for algo in algos}
+        for env_id in envs
+    }
+    return draw_success(panels)
 
 
 def load_progress(run: Path) -> pd.DataFrame | None:
@@ -166,7 +219,15 @@ def metric_curve(progress: pd.DataFrame, key: str) -> Curve | None:
     return logged[STEPS_KEY].to_numpy(dtype=float), logged[key].to_numpy(dtype=float)
 
 
-def plot_hierarchical_metrics(log_folder: Path, algos: list[str], envs: list[str]) -> Figure | None:
+def value_at(curve: Curve | None, step: float) -> float:
+    """The last value of a logged curve at or before ``step`` (NaN when nothing was logged by then)."""
+    if curve is None:
+        return math.nan
+    logged = np.flatnonzero(curve[0] <= step)
+    return float(curve[1][logged[-1]]) if logged.size else math.nan
+
+
+def plot_hierarchical_metrics(log_folders: Sequence[Path], algos: list[str], envs: list[str]) -> Figure | None:
     """Distance to the subgoal and lower value against steps, one row per metric and one column per env.
 
     Flat algorithms log neither metric and are left out; returns None when no run has them.
@@ -177,7 +238,7 @@ def plot_hierarchical_metrics(log_folder: Path, algos: list[str], envs: list[str
     plotted = False
     for col, env_id in enumerate(envs):
         for algo in algos:
-            logs = [load_progress(run) for run in find_runs(log_folder, algo, env_id)]
+            logs = [load_progress(run) for run in find_runs(log_folders, algo, env_id)]
             for row, key in enumerate(HIERARCHICAL_METRICS):
                 curves = [curve for progress in logs if progress is not None and (curve := metric_curve(progress, key))]
                 if not curves:
@@ -198,7 +259,7 @@ def plot_hierarchical_metrics(log_folder: Path, algos: list[str], envs: list[str
 
 
 def final_success_iqm(
-    log_folder: Path, algos: list[str], envs: list[str], window: int = 100, reps: int = 2000, seed: int = 0
+    log_folders: Sequence[Path], algos: list[str], envs: list[str], window: int = 100, reps: int = 2000, seed: int = 0
 ) -> pd.DataFrame:
     """IQM of the final success over seeds with a stratified-bootstrap 95 % interval, per algorithm and env."""
     from rliable import library, metrics
@@ -207,7 +268,7 @@ def final_success_iqm(
     for env_id in envs:
         # rliable expects (runs, tasks) score matrices; each env is estimated on its own, as one task.
         scores = {
-            algo: np.array([[final_success(run, window)] for run in find_runs(log_folder, algo, env_id)]) for algo in algos
+            algo: np.array([[final_success(run, window)] for run in find_runs(log_folders, algo, env_id)]) for algo in algos
         }
         np.random.seed(seed)  # rliable's bootstrap draws from NumPy's global generator
         points, intervals = library.get_interval_estimates(
@@ -255,7 +316,10 @@ def save(fig: Figure, path: Path, formats: list[str]) -> list[Path]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-f", "--log-folder", default="logs", type=Path, help="the zoo's log folder (train -f)")
+    parser.add_argument(
+        "-f", "--log-folder", nargs="+", default=[Path("logs")], type=Path, dest="log_folders",
+        help="the zoo's log folders (train -f); an algorithm's runs on an env in all of them are its seeds",
+    )  # fmt: skip
     parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm names, one line (or bar) each")
     parser.add_argument("--envs", nargs="+", required=True, help="env ids, one panel each")
     parser.add_argument("--out", default="figures", type=Path, help="output folder")
@@ -266,14 +330,14 @@ def main() -> None:
     args = parser.parse_args()
 
     try:
-        written = save(plot_success(args.log_folder, args.algos, args.envs, args.window), args.out / "success", args.formats)
-        metrics_fig = plot_hierarchical_metrics(args.log_folder, args.algos, args.envs)
+        written = save(plot_success(args.log_folders, args.algos, args.envs, args.window), args.out / "success", args.formats)
+        metrics_fig = plot_hierarchical_metrics(args.log_folders, args.algos, args.envs)
         if metrics_fig is None:
             print("No progress.csv with rollout/subgoal_distance or rollout/low_value: no hierarchical-metrics figure.")
         else:
             written += save(metrics_fig, args.out / "hierarchical_metrics", args.formats)
         if args.iqm:
-            table = final_success_iqm(args.log_folder, args.algos, args.envs, args.window, args.reps)
+            table = final_success_iqm(args.log_folders, args.algos, args.envs, args.window, args.reps)
             written += save(plot_iqm(table), args.out / "final_success_iqm", args.formats)
             table.to_csv(args.out / "final_success_iqm.csv", index=False)
             written.append(args.out / "final_success_iqm.csv")
