@@ -1,25 +1,51 @@
-"""Benchmarks: throughput ratios and learning curves, written to BENCHMARKS.md with command, machine and date.
+"""Benchmarks: throughput ratios and learning curves; BENCHMARKS.md sections (command, machine, date) only on request.
 
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
     python zoo_scripts/benchmark.py profiles --write                # steps/s at the paper tasks' CPU profiles
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
-    python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set planning=off --name ablations
+    python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set "planning='off'" --name ablations
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick            # every algorithm, <= 1 h
+    python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick --report-only --write   # BENCHMARKS.md
     python zoo_scripts/benchmark.py learning --protocol paper --ray-address HEAD:6379     # paper tasks on a cluster
     python zoo_scripts/benchmark.py learning --envs FetchPush-v4 FetchPickAndPlace-v4 --algos dipper sac --seeds 0 1
 
-``learning`` runs every (algorithm, task, seed) triple from the task's entry of ``hyperparams/<algo>.yml``, evaluates
-the deterministic success rate every ``--eval-freq`` primitive steps (``evaluations.npz`` per run, in
-``<out>/<algo>/<env>/seed_<n>/``), skips runs that already finished (their ``result.json`` exists: rerun the same
-command after a crash to resume), and aggregates: a CSV with an env column, one markdown table per task (final
-success mean +- std, steps to 50 %, and for hierarchical algorithms the final subgoal distance and lower-level value)
-and one figure with a panel per task (mean and standard deviation over seeds, a line per algorithm).
+``learning`` runs every (algorithm, task, seed) triple as the RL-Zoo run a user would start::
 
-Runs execute in a local process pool of ``--workers`` processes, or with ``--ray-address`` as Ray tasks of one CPU
-each on a running cluster (``ray start --head`` on one machine, ``ray start --address HEAD:6379`` on the others).
-The Ray workers import this checkout and write into ``--out`` themselves, so every node must see the checkout, its
-virtualenv and ``--out`` at the same paths (a shared filesystem) and run ``ray`` from that virtualenv
-(``pip install -e ".[cluster]"``).
+    sb3-dipper-zoo train --algo ALGO --env ENV --seed SEED -f OUT/VARIANT/seed_SEED --eval-freq F --eval-episodes N \
+        --n-eval-envs E --num-threads 1 [-n BUDGET] [--env-kwargs k:v ...] [-params k:v ...]
+
+so hyperparameters come from the task's entry of ``hyperparams/<algo>.yml`` (``callback`` included) exactly as there,
+``--set key=value`` and ``--env-kwargs key=value`` become the zoo's ``-params key:value`` and ``--env-kwargs key:value``
+(the value is read as Python by rl-zoo3: quote strings, ``--set "planning='off'"``; the env kwargs apply to the
+training and the evaluation envs), and each run is an ordinary zoo run folder::
+
+    OUT/<variant or default>/seed_<n>/<algo>/<env>_1/
+        0.monitor.csv ...         monitor files (episode return, length, is_success)
+        <env>/config.yml args.yml command.txt
+        <env>.zip best_model.zip  the final model; the best one by evaluation reward
+        evaluations.npz           SB3's EvalCallback: timesteps, results, ep_lengths, successes
+        progress.csv              SB3's CSV log, where the YAML entry names CSVProgressCallback (the hierarchical
+                                  algorithms): rollout/subgoal_distance, rollout/low_value, eval/success_rate, ...
+        result.json               written by this script once the run trained its whole budget
+    OUT/<variant or default>/seed_<n>/<algo>/<env>.log     the zoo's output of the run's last attempt
+
+A run with ``result.json`` is skipped, so rerunning the same command after a crash redoes only the unfinished runs (their
+leftover folders are removed first). ``zoo_scripts/plot.py -f OUT/default/seed_*`` plots the runs like any zoo runs.
+The report reads the runs on disk through ``plot.py``'s loaders (finished or not, ``--report-only`` without running
+anything): a table per task (seeds, with the unfinished ones counted as partial, the last evaluation every seed has
+reached, the success there as mean +- std over seeds, the steps where the mean success first reaches 50 %, and for
+hierarchical algorithms the subgoal distance and lower value last logged at or before that step), the CSV
+``OUT/<name>.csv`` with one row per seed and evaluation, and a figure with a panel per task (``plot.draw_success``).
+The tables are printed and the figure written to ``OUT/<name>.png``; only ``--write`` puts the section ``<name>`` into
+BENCHMARKS.md (``--benchmarks-md``) and the figure into docs/benchmarks/ (``--figures-dir``). rl-zoo3 evaluates every
+``--eval-freq`` steps, so a budget that is not a multiple of it ends with its last evaluation up to ``--eval-freq``
+steps before the end.
+
+Runs execute locally, ``--workers`` zoo processes at a time, or with ``--ray-address`` as Ray tasks of one CPU each on a
+running cluster (``ray start --head`` on one machine, ``ray start --address HEAD:6379`` on the others), each starting
+the zoo process on its node. The Ray workers import this checkout and write into ``--out`` themselves, so every node
+must see the checkout, its virtualenv and ``--out`` at the same paths (a shared filesystem) and run ``ray`` from that
+virtualenv (``pip install -e ".[cluster]"``). Every run uses one torch thread (``SB3_DIPPER_THREADS`` to change it).
 
 Protocols preset algorithms, tasks, seeds and budgets; flags given explicitly override them:
 
@@ -43,17 +69,20 @@ Protocols preset algorithms, tasks, seeds and budgets; flags given explicitly ov
 from __future__ import annotations
 
 import argparse
+import ast
 import datetime
 import json
-import math
 import os
 import platform
 import random
+import shutil
 import statistics
+import subprocess
 import sys
 import time
+import zipfile
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -62,15 +91,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.utils import safe_mean
-from stable_baselines3.common.vec_env import VecNormalize, sync_envs_normalization
-
-from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import episode_successes, load_entry, make_env, make_model, torch_threads
-from plot import LABELS
+import plot
+from configs import make_env, make_model, torch_threads
+from plot import LABELS, label
 
 REPO = Path(__file__).resolve().parent.parent
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
@@ -118,11 +143,6 @@ OPTION_METRICS = ("subgoal_distance", "low_value")
 # ------------------------------------------------------------------------------------------------------------- report
 
 
-def label(run: str) -> str:
-    algo, _, variant = run.partition("-")
-    return LABELS.get(algo, algo) + (f" ({variant})" if variant else "")
-
-
 def machine() -> str:
     return f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, torch {th.__version__}, no GPU"
 
@@ -137,7 +157,9 @@ def write_section(name: str, body: str, command: str, path: Path = BENCHMARKS_MD
         text = text[: text.index(start)] + section + text[text.index(end) + len(end) :]
     else:
         text = f"{text.rstrip()}\n\n{section}\n"
-    path.write_text(text)
+    temporary = path.with_name(f"{path.name}.tmp")
+    temporary.write_text(text)
+    temporary.replace(path)
 
 
 # ------------------------------------------------------------------------------------------------------------- throughput
@@ -247,159 +269,180 @@ def run_profiles(args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------------------------------------------------- learning
 
 
-class PeriodicSuccess(BaseCallback):
-    """Deterministic success rate every ``eval_freq`` primitive steps, saved as ``evaluations.npz`` (EvalCallback keys).
-
-    For hierarchical models it also saves, per evaluation, the mean subgoal distance and lower-level value of the
-    last options: the values the model logs as ``rollout/subgoal_distance`` and ``rollout/low_value`` (NaN while
-    none were recorded, e.g. the lower value before ``learning_starts`` or for a scripted lower level).
-    """
-
-    def __init__(self, eval_env, eval_freq: int, n_episodes: int, path: Path):
-        super().__init__()
-        self.eval_env, self.eval_freq, self.n_episodes, self.path = eval_env, eval_freq, n_episodes, path
-        self.timesteps: list[int] = []
-        self.successes: list[list[float]] = []
-        self.option_metrics: dict[str, list[float]] = {key: [] for key in OPTION_METRICS}
-        self._next = eval_freq
-
-    def _on_step(self) -> bool:
-        if self.num_timesteps >= self._next:
-            self._next += self.eval_freq
-            self.evaluate()
-        return True
-
-    def evaluate(self) -> None:
-        # A model trained on a VecNormalize env is evaluated with the training statistics, frozen (as EvalCallback does).
-        sync_envs_normalization(self.training_env, self.eval_env)
-        self.timesteps.append(self.num_timesteps)
-        self.successes.append(episode_successes(self.model, self.eval_env, self.n_episodes))
-        arrays: dict[str, Any] = dict(timesteps=np.array(self.timesteps), successes=np.array(self.successes))
-        if isinstance(self.model, HierarchicalAlgorithm):
-            # The logger's values are cleared at every dump; these windows are what dump_logs averages.
-            for key, values in self.option_metrics.items():
-                values.append(float(safe_mean(self.model._option_metrics[key])))
-                arrays[key] = np.array(values)
-        np.savez(self.path, **arrays)
+DEFAULT_VARIANT = "default"  # the folder of the runs without --variant
+RESULT = "result.json"
 
 
 def run_name(algo: str, variant: str | None) -> str:
+    """The name of an algorithm's runs in tables, figure and CSV: ``<algo>`` or ``<algo>-<variant>``."""
     return algo if variant is None else f"{algo}-{variant}"
 
 
-def parse_overrides(assignments: list[str]) -> dict[str, Any]:
-    """``key=value`` pairs, values read as YAML (``planning=off``, ``nll_coef=0.0``, ``hindsight_actions=false``)."""
-    import yaml
+def seed_folder(out: Path, variant: str | None, seed: int) -> Path:
+    """The zoo log folder (``train -f``) of one seed of a variant: ``<out>/<variant or 'default'>/seed_<seed>``."""
+    return out / (variant or DEFAULT_VARIANT) / f"seed_{seed}"
 
-    overrides = {}
+
+def zoo_pairs(flag: str, assignments: list[str]) -> list[str]:
+    """``key=value`` assignments as rl-zoo3's ``key:value`` (its ``-params`` and ``--env-kwargs``).
+
+    rl-zoo3 evaluates each value as Python. A bare word such as ``planning=off`` would be a name it cannot evaluate
+    (in every run, after its start-up), so it is refused here with the quoting that works.
+
+    :param flag: the option the assignments came from, for the error message
+    :param assignments: ``key=value`` strings
+    """
+    pairs = []
     for assignment in assignments:
         key, separator, value = assignment.partition("=")
-        if not separator:
-            raise ValueError(f"--set takes key=value, got {assignment!r}")
-        overrides[key] = yaml.safe_load(value)
-    return overrides
+        try:
+            expression = ast.parse(value, mode="eval").body if separator and key else None
+        except SyntaxError as error:
+            raise ValueError(f"{flag} {assignment}: {value!r} is not a Python expression ({error.msg})") from None
+        if expression is None:
+            raise ValueError(f"{flag} takes key=value (e.g. {flag} learning_starts=1000), got {assignment!r}")
+        if isinstance(expression, ast.Name):
+            raise ValueError(
+                f"{flag} {assignment}: rl-zoo3 reads the value as Python, where {value} is an undefined name; "
+                f"quote a string: {flag} \"{key}='{value}'\""
+            )
+        pairs.append(f"{key}:{value}")
+    return pairs
 
 
-def run_directory(out: Path, algo: str, env_id: str, seed: int) -> Path:
-    return out / algo / env_id / f"seed_{seed}"
+def zoo_flags(args: argparse.Namespace) -> list[str]:
+    """The ``sb3-dipper-zoo train`` flags every run of this command shares (evaluation, budget, overrides)."""
+    n_eval_envs = args.n_eval_envs or min(args.eval_episodes, 10)
+    flags = ["--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--n-eval-envs", str(n_eval_envs)]
+    if args.n_timesteps:
+        flags += ["-n", str(args.n_timesteps)]
+    if args.env_kwargs:
+        flags += ["--env-kwargs", *zoo_pairs("--env-kwargs", args.env_kwargs)]
+    if args.set:
+        flags += ["-params", *zoo_pairs("--set", args.set)]
+    return flags
 
 
-def learning_run(
-    algo: str,
-    env_id: str,
-    seed: int,
-    out: Path,
-    eval_freq: int,
-    eval_episodes: int,
-    n_timesteps: int | None,
-    variant: str | None = None,
-    overrides: dict[str, Any] | None = None,
-) -> str:
-    """One (algorithm, task, seed) run; writes evaluations.npz and, once finished, result.json."""
-    th.set_num_threads(torch_threads())
-    directory = run_directory(out, run_name(algo, variant), env_id, seed)
-    directory.mkdir(parents=True, exist_ok=True)
-    model, _, budget = make_model(algo, env_id, seed=seed, overrides=overrides)
-    budget = n_timesteps or budget
-    eval_env = make_env(env_id, {**load_entry(algo, env_id), **(overrides or {})}, seed=seed + 10_000, n_envs=10)
-    if isinstance(eval_env, VecNormalize):
-        eval_env.training, eval_env.norm_reward = False, False
-    callback = PeriodicSuccess(eval_env, eval_freq, eval_episodes, directory / "evaluations.npz")
+def finished(run: Path) -> bool:
+    return (run / RESULT).exists()
+
+
+def trained_to_the_end(run: Path) -> bool:
+    """Whether the run's final model trained its whole budget: rl-zoo3 also saves the model of a run stopped by Ctrl-C.
+
+    Reads ``num_timesteps`` and ``_total_timesteps`` from the JSON part of the model zip (no pickle).
+    """
+    env_name = run.name.rsplit("_", 1)[0]  # the zoo names the run folder <env>_<n> and the model <env>.zip
+    model = run / f"{env_name}.zip"
+    if not model.exists():
+        return False
+    with zipfile.ZipFile(model) as archive:
+        data = json.loads(archive.read("data"))
+    return data["num_timesteps"] >= data["_total_timesteps"]
+
+
+def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | None, flags: list[str]) -> str:
+    """One run: ``sb3-dipper-zoo train`` in a process of its own, then ``result.json`` in its run folder.
+
+    Folders an unfinished attempt left (a crash, a kill) are removed first, so the run folder is ``<env>_1`` again.
+
+    :param flags: the zoo flags of :func:`zoo_flags`
+    :return: a line for the console
+    """
+    log_folder = seed_folder(out, variant, seed)
+    for unfinished in plot.zoo_runs(log_folder, algo, env_id):
+        if not finished(unfinished):
+            shutil.rmtree(unfinished)
+    output = log_folder / algo / f"{env_id}.log"
+    output.parent.mkdir(parents=True, exist_ok=True)
+    command = [sys.executable, "-m", "sb3_dipper.zoo", "train", "--algo", algo, "--env", env_id, "--seed", str(seed)]
+    command += ["-f", str(log_folder), "--num-threads", str(torch_threads()), *flags]
     start = time.time()
-    model.learn(budget, callback=callback)
-    if not callback.timesteps or callback.timesteps[-1] < model.num_timesteps:
-        callback.evaluate()
+    with open(output, "w") as log:
+        returncode = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
     seconds = time.time() - start
-    model.save(directory / "model.zip")
-    if isinstance(model.get_env(), VecNormalize):
-        model.get_env().save(str(directory / "vecnormalize.pkl"))  # type: ignore[union-attr]
-    result = dict(
-        algo=algo, variant=variant, overrides=overrides, env=env_id, seed=seed, steps=model.num_timesteps, seconds=seconds
-    )
-    (directory / "result.json").write_text(json.dumps(result))
-    return f"{algo} {env_id} seed {seed}: {seconds / 60:.1f} min, final success {np.mean(callback.successes[-1]):.2f}"
+    runs = plot.zoo_runs(log_folder, algo, env_id)
+    if returncode != 0 or not runs or not trained_to_the_end(runs[-1]):
+        tail = "".join(output.read_text().splitlines(keepends=True)[-20:])
+        raise RuntimeError(
+            f"{run_name(algo, variant)} on {env_id}, seed {seed}: sb3-dipper-zoo train exited with {returncode} without "
+            f"training its whole budget; its output is in {output}, ending with:\n{tail}"
+        )
+    result = dict(algo=algo, variant=variant, env=env_id, seed=seed, seconds=seconds)
+    temporary = runs[-1] / f"{RESULT}.tmp"
+    temporary.write_text(json.dumps(result))
+    temporary.replace(runs[-1] / RESULT)
+    curve = plot.evaluation_curve(runs[-1])
+    success = f", success {curve[1][-1]:.2f} at its last evaluation" if curve is not None else ""
+    return f"{run_name(algo, variant)} {env_id} seed {seed}: {seconds / 60:.1f} min{success}"
 
 
 @dataclass
 class Curves:
-    """The evaluations of one algorithm on one task, truncated to the evaluations every seed has reached."""
+    """The evaluations of one algorithm (or variant) on one task, at the evaluations every seed has reached."""
 
     seeds: list[int]
     finished: list[bool]  # per seed: the run has ended (result.json); a running or cut-off run is partial
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (seeds, evaluations) success rates
-    metrics: dict[str, np.ndarray]  # every OPTION_METRICS key, (seeds, evaluations), NaN where not recorded
+    metrics: dict[str, np.ndarray]  # every OPTION_METRICS key, (seeds, evaluations), NaN where not logged
 
 
-def load_curves(out: Path, algo: str, env_id: str, seeds: list[int]) -> Curves | None:
-    runs = {}
+def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves | None:
+    """The runs of ``name`` (``<algo>[-<variant>]``) on ``env_id`` that have evaluations, read with plot.py's loaders.
+
+    A seed counts with its last run folder; the option metrics at an evaluation are the last values ``progress.csv``
+    logged at or before its step.
+    """
+    algo, _, variant = name.partition("-")
+    found, done, curves, logs = [], [], [], []
     for seed in seeds:
-        path = run_directory(out, algo, env_id, seed) / "evaluations.npz"
-        if path.exists():
-            with np.load(path) as data:
-                runs[seed] = {key: data[key] for key in data.files}
-    if not runs:
+        runs = plot.zoo_runs(seed_folder(out, variant or None, seed), algo, env_id)
+        curve = plot.evaluation_curve(runs[-1]) if runs else None
+        if curve is not None:
+            found.append(seed)
+            done.append(finished(runs[-1]))
+            curves.append(curve)
+            logs.append(plot.load_progress(runs[-1]))
+    if not curves:
         return None
-    length = min(len(run["timesteps"]) for run in runs.values())
-    nan = np.full(length, np.nan)
-    return Curves(
-        seeds=list(runs),
-        finished=[(run_directory(out, algo, env_id, seed) / "result.json").exists() for seed in runs],
-        steps=next(iter(runs.values()))["timesteps"][:length],
-        success=np.stack([run["successes"].mean(axis=1)[:length] for run in runs.values()]),
-        metrics={key: np.stack([run[key][:length] if key in run else nan for run in runs.values()]) for key in OPTION_METRICS},
-    )
+    steps, success = plot.align(curves)
+    metrics = {}
+    for key in OPTION_METRICS:
+        logged = [plot.metric_curve(log, f"rollout/{key}") if log is not None else None for log in logs]
+        metrics[key] = np.array([[plot.value_at(curve, step) for step in steps] for curve in logged])
+    return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics)
 
 
 def final_mean(curves: Curves, key: str) -> str:
-    """Mean over seeds of a metric's last evaluation, or a dash where the algorithm does not record it."""
+    """Mean over seeds of a metric at the last evaluation, or a dash where the algorithm does not log it."""
     final = curves.metrics[key][:, -1]
     return "-" if np.isnan(final).all() else f"{np.nanmean(final):.2f}"
 
 
-def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Curves], list[str]]:
-    """Markdown table of one task (final success mean +- std, steps to 50 %, option metrics), curves and CSV rows."""
+def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Curves], list[str]]:
+    """Markdown table of one task (success at the last common evaluation, steps to 50 %, option metrics), its curves
+    and its CSV rows."""
     curves: dict[str, Curves] = {}
     rows, csv_rows = [], []
-    for algo in algos:
-        algo_curves = load_curves(out, algo, env_id, seeds)
-        if algo_curves is None:
+    for name in names:
+        run_curves = load_curves(out, name, env_id, seeds)
+        if run_curves is None:
             continue
-        curves[algo] = algo_curves
-        for index, seed in enumerate(algo_curves.seeds):
-            for step_index, step in enumerate(algo_curves.steps):
-                metrics = [algo_curves.metrics[key][index, step_index] for key in OPTION_METRICS]
+        curves[name] = run_curves
+        for index, seed in enumerate(run_curves.seeds):
+            for step_index, step in enumerate(run_curves.steps):
+                metrics = [run_curves.metrics[key][index, step_index] for key in OPTION_METRICS]
                 values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
-                csv_rows.append(f"{env_id},{algo},{seed},{int(step)},{algo_curves.success[index, step_index]:.4f},{values}")
-        final = algo_curves.success[:, -1]
-        reached = np.flatnonzero(algo_curves.success.mean(axis=0) >= 0.5)
-        to_half = f"{int(algo_curves.steps[reached[0]]):,}" if reached.size else "not reached"
-        unfinished = algo_curves.finished.count(False)
-        runs = f"{len(algo_curves.seeds)}" + (f" ({unfinished} partial)" if unfinished else "")
+                csv_rows.append(f"{env_id},{name},{seed},{int(step)},{run_curves.success[index, step_index]:.4f},{values}")
+        final = run_curves.success[:, -1]
+        reached = np.flatnonzero(run_curves.success.mean(axis=0) >= 0.5)
+        to_half = f"{int(run_curves.steps[reached[0]]):,}" if reached.size else "not reached"
+        unfinished = run_curves.finished.count(False)
+        runs = f"{len(run_curves.seeds)}" + (f" ({unfinished} partial)" if unfinished else "")
         rows.append(
-            f"| {label(algo)} | {runs} | {int(algo_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
-            f"{to_half} | "
-            f"{final_mean(algo_curves, 'subgoal_distance')} | {final_mean(algo_curves, 'low_value')} |"
+            f"| {label(name)} | {runs} | {int(run_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
+            f"{to_half} | {final_mean(run_curves, 'subgoal_distance')} | {final_mean(run_curves, 'low_value')} |"
         )
     table = (
         "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | steps to 50 % (mean curve) | "
@@ -408,69 +451,44 @@ def aggregate(out: Path, algos: list[str], env_id: str, seeds: list[int]) -> tup
     return table + "\n".join(rows), curves, csv_rows
 
 
-def plot_curves(curves: dict[str, dict[str, Curves]], path: Path) -> dict[str, list[str]]:
-    """One panel per task, a line per algorithm (mean, band of one standard deviation); returns each panel's lines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    algos = list(dict.fromkeys(algo for task in curves.values() for algo in task))
-    # The same colour for an algorithm in every panel: tab20's even colours are tab10's, its lighter odd ones serve
-    # past the tenth algorithm (the full comparison has eleven).
-    colormap = plt.get_cmap("tab20")
-    colors = {algo: colormap((2 * index) % 20 + (2 * index) // 20) for index, algo in enumerate(algos)}
-    columns = 1 if len(curves) == 1 else 2
-    rows = math.ceil(len(curves) / columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(6.5 * columns, 4 * rows), squeeze=False, layout="constrained")
-    lines = {}
-    for ax, (env_id, task) in zip(axes.flat, curves.items(), strict=False):
-        for algo, algo_curves in task.items():
-            mean, std = algo_curves.success.mean(axis=0), algo_curves.success.std(axis=0)
-            ax.plot(algo_curves.steps, mean, label=label(algo), color=colors[algo])
-            ax.fill_between(
-                algo_curves.steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[algo], alpha=0.2
-            )
-        ax.set(xlabel="primitive steps", ylabel="success rate (deterministic)", ylim=(-0.02, 1.02), title=env_id)
-        ax.grid(alpha=0.3)
-        lines[env_id] = [line.get_label() for line in ax.get_lines()]
-    for ax in axes.flat[len(curves) :]:
-        ax.set_axis_off()
-    handles = [plt.Line2D([], [], color=colors[algo], label=label(algo)) for algo in algos]
-    fig.legend(handles=handles, loc="outside right upper")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return lines
-
-
 def report(
-    out: Path, algos: list[str], envs: list[str], seeds: list[int], name: str, figures_dir: Path
+    out: Path, names: list[str], envs: list[str], seeds: list[int], name: str, figures_dir: Path
 ) -> tuple[dict[str, str], dict[str, dict[str, Curves]], Path]:
-    """Tables and curves per task, the CSV ``<out>/<name>.csv`` and the figure ``<figures_dir>/<name>.png``."""
+    """Tables and curves per task, the CSV ``<out>/<name>.csv`` and the figure ``<figures_dir>/<name>.png``.
+
+    :param names: the runs to report, ``<algo>`` or ``<algo>-<variant>``
+    """
     tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join(OPTION_METRICS)]
     for env_id in envs:
-        tables[env_id], curves[env_id], rows = aggregate(out, algos, env_id, seeds)
+        tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds)
         csv_rows += rows
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.csv").write_text("\n".join(csv_rows) + "\n")
-    figures_dir.mkdir(parents=True, exist_ok=True)
-    figure = figures_dir / f"{name}.png"
-    plot_curves(curves, figure)
+    panels = {
+        env_id: {run: [(run_curves.steps, success) for success in run_curves.success] for run, run_curves in task.items()}
+        for env_id, task in curves.items()
+    }
+    figure = plot.save(plot.draw_success(panels), figures_dir / name, ["png"])[0]
     return tables, curves, figure
 
 
 def local_results(jobs: list[tuple[Any, ...]], workers: int) -> Iterator[str]:
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    """The runs on this machine, ``workers`` zoo processes at a time; a failed run cancels the runs not yet started."""
+    with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = [pool.submit(learning_run, *job) for job in jobs]
-        for future in as_completed(futures):
-            yield future.result()
+        try:
+            for future in as_completed(futures):
+                yield future.result()
+        finally:
+            for future in futures:
+                future.cancel()
 
 
 def ray_results(jobs: list[tuple[Any, ...]], address: str) -> Iterator[str]:
     """The runs as Ray tasks of one CPU on the cluster at ``address``; they write into ``--out`` themselves."""
     import ray
 
-    # Workers unpickle learning_run, which imports configs from this directory: it must be on their path.
+    # Workers unpickle learning_run, which imports configs and plot from this directory: it must be on their path.
     python_path = [str(Path(__file__).resolve().parent), *filter(None, [os.environ.get("PYTHONPATH")])]
     env_vars = {"PYTHONPATH": os.pathsep.join(python_path), "MUJOCO_GL": os.environ["MUJOCO_GL"]}
     if "SB3_DIPPER_THREADS" in os.environ:
@@ -498,31 +516,37 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
     resolve_protocol(args)
     # Absolute, so that Ray workers, whose working directory differs, write to the same place.
     out = Path(args.out).resolve()
-    overrides = parse_overrides(args.set)
+    flags = zoo_flags(args)
     names = [run_name(algo, args.variant) for algo in args.algos]
     triples = [(algo, env_id, seed) for algo in args.algos for env_id in args.envs for seed in args.seeds]
     jobs = [
-        (algo, env_id, seed, out, args.eval_freq, args.eval_episodes, args.n_timesteps, args.variant, overrides)
+        (algo, env_id, seed, out, args.variant, flags)
         for algo, env_id, seed in triples
-        if not (run_directory(out, run_name(algo, args.variant), env_id, seed) / "result.json").exists()
+        if not any(finished(run) for run in plot.zoo_runs(seed_folder(out, args.variant, seed), algo, env_id))
     ]
     print(f"{len(jobs)} runs to do, {len(triples) - len(jobs)} already finished", flush=True)
     if not args.report_only:
         results = ray_results(jobs, args.ray_address) if args.ray_address else local_results(jobs, args.workers)
         for result in results:
             print(result, flush=True)
-    tables, curves, figure = report(out, args.report or names, args.envs, args.seeds, args.name, Path(args.figures_dir))
-    markdown = Path(args.benchmarks_md)
+    figures_dir = Path(args.figures_dir or RESULTS_DIR) if args.write else out
+    tables, curves, figure = report(out, args.report or names, args.envs, args.seeds, args.name, figures_dir)
     budget = f"{args.n_timesteps:,} primitive steps per run" if args.n_timesteps else "the YAML budgets"
-    body = (
+    overrides = " ".join(flags[flags.index("-params") + 1 :]) if args.set else ""
+    description = (
         f"Seeds {args.seeds}, {budget}, deterministic success over {args.eval_episodes} episodes every "
-        f"{args.eval_freq:,} primitive steps; hyperparameters: each task's entry of `hyperparams/<algo>.yml`. Subgoal "
-        "distance and lower value: mean of the last 100 options at the last evaluation (hierarchical algorithms).\n\n"
-        + "\n\n".join(f"`{env_id}`\n\n{table}" for env_id, table in tables.items())
-        + f"\n\n![success curves]({os.path.relpath(figure, markdown.resolve().parent)})"
+        f"{args.eval_freq:,} primitive steps (rl-zoo3's EvalCallback); runs: `sb3-dipper-zoo train` with each task's "
+        f"entry of `hyperparams/<algo>.yml`{f' and `-params {overrides}`' if overrides else ''}. Subgoal distance and "
+        "lower value: as last logged to `progress.csv` at or before the last evaluation, the mean over the last 100 "
+        "options (hierarchical algorithms)."
     )
-    write_section(args.name, body, "python zoo_scripts/benchmark.py learning " + " ".join(sys.argv[2:]), markdown)
-    print(body)
+    tables_text = "\n\n".join(f"`{env_id}`\n\n{table}" for env_id, table in tables.items())
+    if args.write:
+        markdown = Path(args.benchmarks_md or BENCHMARKS_MD)
+        image = f"![success curves]({os.path.relpath(figure, markdown.resolve().parent)})"
+        command = "python zoo_scripts/benchmark.py learning " + " ".join(sys.argv[2:])
+        write_section(args.name, f"{description}\n\n{tables_text}\n\n{image}", command, markdown)
+    print(f"{description}\n\n{tables_text}\n\nFigure: {figure}\nCSV: {out / f'{args.name}.csv'}")
     return tables, curves
 
 
@@ -549,20 +573,30 @@ def main() -> None:
     learning.add_argument("--seeds", type=int, nargs="+", help=f"default: {LEARNING_DEFAULTS['seeds']}")
     learning.add_argument("--eval-freq", type=int, help=f"default: {LEARNING_DEFAULTS['eval_freq']} primitive steps")
     learning.add_argument("--eval-episodes", type=int, help=f"default: {LEARNING_DEFAULTS['eval_episodes']}")
-    learning.add_argument("--n-timesteps", type=int, help="override every entry's n_timesteps")
-    learning.add_argument("--workers", type=int, default=2, help="processes of the local pool")
+    learning.add_argument("--n-eval-envs", type=int, help="evaluation envs (default: --eval-episodes, at most 10)")
+    learning.add_argument("--n-timesteps", type=int, help="override every entry's n_timesteps (the zoo's -n)")
+    learning.add_argument("--workers", type=int, default=2, help="runs at a time on this machine")
     learning.add_argument("--ray-address", help="run on this Ray cluster (e.g. 10.0.0.1:6379 or auto) instead")
-    learning.add_argument("--out", default="runs/benchmark")
+    learning.add_argument("--out", default="runs/benchmark", help="runs in <out>/<variant>/seed_<n>/, tables, CSV, figure")
     learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")
-    learning.add_argument("--variant", default=None, help="name of a variant; its runs live in <algo>-<variant>")
-    learning.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameter overrides of a variant")
+    learning.add_argument(
+        "--variant", default=None, help=f"name of a variant: its runs live in <out>/<variant> (else <out>/{DEFAULT_VARIANT})"
+    )
+    learning.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hyperparameters: the zoo's -params")
+    learning.add_argument("--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="the zoo's --env-kwargs")
     learning.add_argument(
         "--report-only", action="store_true", help="run nothing: tables and figure from the runs on disk, partial ones too"
     )
     learning.add_argument("--report", nargs="*", default=None, help="runs to put in the table (default: this command's)")
-    learning.add_argument("--benchmarks-md", default=str(BENCHMARKS_MD), help="markdown file the section is written to")
-    learning.add_argument("--figures-dir", default=str(RESULTS_DIR), help="directory of the figure")
+    learning.add_argument("--write", action="store_true", help="write the section of BENCHMARKS.md and its figure")
+    learning.add_argument("--benchmarks-md", help="with --write: the markdown file of the section (default: BENCHMARKS.md)")
+    learning.add_argument("--figures-dir", help="with --write: the directory of the figure (default: docs/benchmarks)")
     args = parser.parse_args()
+    if args.command == "learning":
+        if not args.write and (args.benchmarks_md or args.figures_dir):
+            learning.error("--benchmarks-md and --figures-dir say where --write writes: add --write, or leave them out")
+        if args.variant == DEFAULT_VARIANT:
+            learning.error(f"--variant {DEFAULT_VARIANT} names the folder of the runs without a variant: choose another")
     {"throughput": run_throughput, "profiles": run_profiles, "learning": run_learning}[args.command](args)
 
 

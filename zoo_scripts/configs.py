@@ -1,8 +1,9 @@
 """Read our RL-Zoo hyperparameter files (``hyperparams/<algo>.yml``) without importing rl-zoo3.
 
-The demo and the benchmarks build models from the same YAML entries the zoo trains with, so there is one source of
-configuration. Strings such as ``"dict(net_arch=[64, 64])"`` are evaluated as rl-zoo3 does, with the few names its
-files use and no builtins.
+The demo and the in-process benchmarks (``benchmark.py throughput`` and ``profiles``) build models from the same YAML
+entries the zoo trains with, so there is one source of configuration; ``benchmark.py learning`` runs the zoo itself.
+Strings such as ``"dict(net_arch=[64, 64])"`` are evaluated as rl-zoo3 does, with the few names its files use and no
+builtins.
 """
 
 from __future__ import annotations
