@@ -136,7 +136,7 @@ PROTOCOLS: dict[str, dict[str, Any]] = {
         eval_episodes=20,
     ),
 }
-# Logged by the option layer of hierarchical algorithms (``rollout/<key>``); recorded at each evaluation.
+# Logged by the option layer of hierarchical algorithms (``rollout/<key>`` in progress.csv); read at each evaluation.
 OPTION_METRICS = ("subgoal_distance", "low_value")
 
 
