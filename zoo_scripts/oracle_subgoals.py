@@ -1,13 +1,13 @@
 """Which level fails? A trained hierarchical model driven by the demonstration's subgoals, beside its own higher level.
 
-    python zoo_scripts/oracle_subgoals.py runs/benchmark/dipper/FetchPickAndPlaceFixed-v0/seed_0 --algo dipper
+    python zoo_scripts/oracle_subgoals.py logs/dipper/FetchPickAndPlaceFixed-v0_1 --algo dipper
 
 On a fixed task (the env starts where the single default demonstration started), the demonstration's achieved
 subgoals at option boundaries (steps K, 2K, ..., the last step) are a sequence of subgoals the expert reached. Driving
 the trained lower level with them measures the lower level alone: if it reaches them, the lower level has learnt what
 the demonstration shows, and a failure of the full policy lies with the higher level's proposals. The script prints,
 for the oracle subgoals and for the model's own higher level (both deterministic), the episode success and the share of
-options that ended within the subgoal threshold, and writes them as ``oracle_subgoals.json`` in the run folder.
+options that ended within the subgoal threshold, and writes them as ``oracle_subgoals.json`` in the zoo run folder.
 """
 
 from __future__ import annotations
@@ -85,18 +85,20 @@ def run_episodes(model: HierarchicalAlgorithm, env: VecEnv, n_episodes: int, sub
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a run folder holding model.zip (and vecnormalize.pkl if it normalised)")
+    parser.add_argument("run", type=Path, help="a zoo run folder (logs/<algo>/<env>_<n>) holding <env>.zip")
     parser.add_argument("--algo", required=True, help="zoo name of the model's algorithm (dipper, hier, ...)")
-    parser.add_argument("--env", help="task (default: the run folder's parent name)")
+    parser.add_argument("--env", help="task (default: the run folder's name without its _<n>)")
     parser.add_argument("--episodes", type=int, default=20)
     args = parser.parse_args()
-    env_id = args.env or args.run.parent.name
+    env_id = args.env or args.run.name.rsplit("_", 1)[0]
     entry: dict[str, Any] = {**load_entry(args.algo, env_id), "normalize": False}
     env = make_env(env_id, entry, seed=20_000, n_envs=1)
-    if (args.run / "vecnormalize.pkl").exists():
-        env = VecNormalize.load(str(args.run / "vecnormalize.pkl"), env)
+    # rl-zoo3 keeps the VecNormalize statistics in <run>/<env>/vecnormalize.pkl.
+    statistics = args.run / env_id / "vecnormalize.pkl"
+    if statistics.exists():
+        env = VecNormalize.load(str(statistics), env)
         env.training, env.norm_reward = False, False
-    model = ALGORITHMS[args.algo].load(args.run / "model.zip", env=env)
+    model = ALGORITHMS[args.algo].load(args.run / f"{env_id}.zip", env=env)
     assert isinstance(model, HierarchicalAlgorithm)
     results = {
         "oracle": run_episodes(model, env, args.episodes, oracle_subgoals(env_id, model.option_steps, model)),

@@ -1,0 +1,51 @@
+"""zoo_scripts/oracle_subgoals.py: a trained model driven by the demonstration's subgoals, beside its own higher level."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_dipper import DIPPER
+from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OBJECT_REST_Z
+from zoo_scripts.oracle_subgoals import oracle_subgoals
+
+SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "oracle_subgoals.py"
+
+ENV_ID = "FetchPickAndPlaceFixed-v0"
+
+
+def tiny_pick_and_place_model() -> DIPPER:
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0)
+    return DIPPER(
+        "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
+        n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
+        low_policy_kwargs=dict(net_arch=[16]), policy_kwargs=dict(net_arch=[16]),
+    )  # fmt: skip
+
+
+def test_the_oracle_subgoals_are_the_demonstrations_positions_at_option_ends():
+    subgoals = oracle_subgoals(ENV_ID, 7, tiny_pick_and_place_model())
+    # 50 demo steps: the ends of options 1..7 (steps 7, 14, ..., 49) and the last step.
+    assert subgoals.shape == (8, 3)
+    np.testing.assert_allclose(subgoals[0], [*FIXED_OBJECT_XY, OBJECT_REST_Z], atol=0.01)  # not lifted yet at step 7
+    assert subgoals[1, 2] > OBJECT_REST_Z + 0.05  # lifted by step 14
+    np.testing.assert_allclose(subgoals[-1], FIXED_PICK_AND_PLACE_GOAL, atol=0.05)
+
+
+def test_the_script_reads_a_zoo_run_folder_and_writes_its_report(tmp_path):
+    run = tmp_path / "dipper" / f"{ENV_ID}_1"
+    run.mkdir(parents=True)
+    model = tiny_pick_and_place_model()
+    model.learn(100)
+    model.save(run / f"{ENV_ID}.zip")
+    command = [sys.executable, str(SCRIPT), str(run), "--algo", "dipper", "--episodes", "2"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads((run / "oracle_subgoals.json").read_text())
+    for driver in ("oracle", "higher_level"):
+        assert 0.0 <= report[driver]["success"] <= 1.0 and 0.0 <= report[driver]["options_reached"] <= 1.0
+    # The first oracle subgoal is where the object rests, reached by leaving it there.
+    assert report["oracle"]["options_reached"] >= 1 / 8
