@@ -6,7 +6,9 @@ import torch as th
 
 from sb3_dipper import DIPPER, HIER
 from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common import imitation
 from sb3_dipper.common.imitation import DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
+from sb3_dipper.common.low_level import clipped_soft_target
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import short_maze, tiny_model
@@ -146,3 +148,27 @@ def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypa
     assert default_demonstration_path("PointMazeFourRooms-v0").exists() and first.n_episodes == 1
     fresh = expert_demonstrations("PointMazeFourRooms-v0", n_episodes=1, seed=0)
     np.testing.assert_array_equal(first.actions, fresh.actions)
+
+
+@pytest.mark.parametrize("with_demos", [True, False])
+def test_lower_targets_are_clipped_when_bounds_are_given(with_demos, maze_demos, monkeypatch):
+    """The authors' clip of every level's targets to [-1 / (1 - gamma), 0], with or without demonstrations."""
+    targets = []
+
+    def recording_target(*args):
+        target = clipped_soft_target(*args)
+        targets.append((args[-1], target.detach()))
+        return target
+
+    monkeypatch.setattr(imitation, "clipped_soft_target", recording_target)
+    demo_kwargs = dict(demo_path=str(maze_demos)) if with_demos else {}
+    model = tiny_model(DIPPER, short_maze(), low_level_kwargs=dict(target_q_bounds=(-2.0, 0.0)), **demo_kwargs)
+    model.learn(120)
+    assert targets, "the clipped update ran"
+    for bounds, target in targets:
+        assert bounds == (-2.0, 0.0) and target.min() >= -2.0 and target.max() <= 0.0
+
+
+def test_bad_target_bounds_are_refused(maze_env):
+    with pytest.raises(ValueError, match="target_q_bounds must be"):
+        tiny_model(DIPPER, maze_env, low_level_kwargs=dict(target_q_bounds=(0.0, -1.0)))

@@ -28,7 +28,7 @@ from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
-from sb3_dipper.common.low_level import step_entropy_coefficient
+from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.subgoals import SubgoalSpace
 
 
@@ -88,6 +88,8 @@ class DemoSAC(SAC):
     :param bc_coef: weight of the behaviour-cloning sum (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss when cloning (PIPER's lambda_1)
     :param q_filter: clone only demo steps whose action the critic values above the policy's
+    :param target_q_bounds: clip the critic's soft Bellman targets to these bounds (the authors' PIPER code clips every
+        level's targets to ``[-1 / (1 - gamma), 0]``, the range of values of a {-1, 0} reward); ``None``: no clip, as SB3
     """
 
     def __init__(
@@ -98,24 +100,28 @@ class DemoSAC(SAC):
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
         q_filter: bool = True,
+        target_q_bounds: tuple[float, float] | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
+        if target_q_bounds is not None and not (len(target_q_bounds) == 2 and target_q_bounds[0] < target_q_bounds[1]):
+            raise ValueError(f"target_q_bounds must be (low, high) with low < high, got {target_q_bounds!r}")
         self.demonstrations = demonstrations
         self.demo_share = demo_share
         self.bc_coef = bc_coef
         self.rl_coef = rl_coef
         self.q_filter = q_filter
+        self.target_q_bounds = None if target_q_bounds is None else (float(target_q_bounds[0]), float(target_q_bounds[1]))
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        if self.demonstrations is None:
+        if self.demonstrations is None and self.target_q_bounds is None:
             return super().train(gradient_steps, batch_size)
         self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         if self.ent_coef_optimizer is not None:
             optimizers.append(self.ent_coef_optimizer)
         self._update_learning_rate(optimizers)
-        n_demo = max(1, round(self.demo_share * batch_size))
+        n_demo = max(1, round(self.demo_share * batch_size)) if self.demonstrations is not None else 0
         logs: dict[str, list[float]] = {
             "actor_loss": [],
             "critic_loss": [],
@@ -140,7 +146,10 @@ class DemoSAC(SAC):
                 next_q = (
                     th.cat(self.critic_target(batch.next_observations, next_actions), dim=1).min(dim=1, keepdim=True).values
                 )
-                target_q = batch.rewards + (1 - batch.dones) * self.gamma * (next_q - ent_coef * next_log_prob.reshape(-1, 1))
+                bounds = self.target_q_bounds or (-np.inf, np.inf)
+                target_q = clipped_soft_target(
+                    batch.rewards, batch.dones, next_q, next_log_prob.reshape(-1, 1), ent_coef, self.gamma, bounds
+                )
             current_q = self.critic(batch.observations, batch.actions)
             critic_loss = 0.5 * sum(F.mse_loss(q, target_q) for q in current_q)
             self.critic.optimizer.zero_grad()
@@ -151,8 +160,11 @@ class DemoSAC(SAC):
             # Actor: SAC's loss, scaled, plus the Q-filtered behaviour-cloning sum over demo steps.
             min_q_pi = th.cat(self.critic(batch.observations, actions_pi), dim=1).min(dim=1, keepdim=True).values
             sac_loss = (ent_coef * log_prob - min_q_pi).mean()
-            bc_loss, kept = self._cloning_loss(batch, is_demo)
-            actor_loss = self.rl_coef * sac_loss + self.bc_coef * bc_loss
+            if n_demo > 0:
+                bc_loss, kept = self._cloning_loss(batch, is_demo)
+                actor_loss = self.rl_coef * sac_loss + self.bc_coef * bc_loss
+            else:  # SAC's own actor loss, with the clipped critic
+                bc_loss, kept, actor_loss = th.zeros(()), 0.0, sac_loss
             self.actor.optimizer.zero_grad()
             actor_loss.backward()
             self.actor.optimizer.step()
@@ -170,6 +182,8 @@ class DemoSAC(SAC):
     def _mixed_batch(self, n_replay: int, n_demo: int) -> DictReplayBufferSamples:
         """Replay transitions followed by ``n_demo`` demo transitions, normalised alike."""
         replay = self.replay_buffer.sample(n_replay, env=self._vec_normalize_env)  # type: ignore[union-attr]
+        if n_demo == 0:
+            return replay  # type: ignore[return-value]
         observations, actions, next_observations, rewards = self.demonstrations.sample(n_demo)  # type: ignore[union-attr]
         if self._vec_normalize_env is not None:
             observations = self._vec_normalize_env.normalize_obs(observations)  # type: ignore[assignment]

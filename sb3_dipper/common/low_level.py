@@ -206,6 +206,23 @@ def step_entropy_coefficient(sac: SAC, log_prob: th.Tensor) -> th.Tensor:
     return th.exp(sac.log_ent_coef.detach())
 
 
+def clipped_soft_target(
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    next_q_values: th.Tensor,
+    next_log_prob: th.Tensor,
+    ent_coef: th.Tensor | float,
+    gamma: float,
+    bounds: tuple[float, float],
+) -> th.Tensor:
+    """SAC's soft Bellman target ``r + gamma * (1 - done) * (min Q'(s', a') - alpha * log pi(a' | s'))``, clipped to bounds.
+
+    ``done`` marks transitions without bootstrap (HAC: goal reached or subgoal penalty), not time limits.
+    """
+    target = rewards + (1.0 - dones) * gamma * (next_q_values - ent_coef * next_log_prob)
+    return target.clamp(*bounds)
+
+
 def sac_state_value(sac: SAC, obs: dict[str, th.Tensor], critic: th.nn.Module | None = None) -> th.Tensor:
     """``V(s, g) = min_i Q_i(s, g, a) - alpha * log pi(a | s, g)``, ``a ~ pi`` (one sample), shape ``(N,)``.
 

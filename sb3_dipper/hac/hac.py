@@ -50,7 +50,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.hierarchical import has_finished_episode
-from sb3_dipper.common.low_level import SACLowLevel, step_entropy_coefficient
+from sb3_dipper.common.low_level import SACLowLevel, clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import as_int, as_optional_int, sparse_goal_reached_fn
@@ -69,23 +69,6 @@ from sb3_dipper.hac.policies import MlpPolicy, MultiInputPolicy
 from sb3_dipper.hier.hier import HIER, OptionGoalVecEnv
 
 SelfHAC = TypeVar("SelfHAC", bound="HAC")
-
-
-def clipped_soft_target(
-    rewards: th.Tensor,
-    dones: th.Tensor,
-    next_q_values: th.Tensor,
-    next_log_prob: th.Tensor,
-    ent_coef: th.Tensor | float,
-    gamma: float,
-    bounds: tuple[float, float],
-) -> th.Tensor:
-    """SAC's soft Bellman target ``r + gamma * (1 - done) * (min Q'(s', a') - alpha * log pi(a' | s'))``, clipped to bounds.
-
-    ``done`` marks transitions without bootstrap (HAC: goal reached or subgoal penalty), not time limits.
-    """
-    target = rewards + (1.0 - dones) * gamma * (next_q_values - ent_coef * next_log_prob)
-    return target.clamp(*bounds)
 
 
 class ClippedSAC(SAC):
