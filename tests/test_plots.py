@@ -152,3 +152,21 @@ def test_logged_values_are_read_at_or_before_a_step():
     curve = (np.array([100.0, 300.0]), np.array([1.0, 2.0]))
     assert [plot.value_at(curve, step) for step in (300, 299, 1000)] == [2.0, 1.0, 2.0]
     assert np.isnan(plot.value_at(curve, 99)) and np.isnan(plot.value_at(None, 100))
+
+
+def test_hierarchical_metrics_from_a_benchmark_csv(tmp_path):
+    """The committed CSV of a benchmark draws the same figure as the run folders it came from."""
+    csv = tmp_path / "bench.csv"
+    csv.write_text(
+        "env,algo,seed,timesteps,success,subgoal_distance,low_value\n"
+        "E-v0,dipper,0,1000,0.0,0.4,-30.0\nE-v0,dipper,0,2000,1.0,0.2,-20.0\n"
+        "E-v0,dipper,1,1000,0.0,0.6,-40.0\nE-v0,dipper,1,2000,0.0,0.4,-30.0\n"
+        "E-v0,sac,0,1000,0.0,,\nE-v0,sac,0,2000,0.0,,\n"
+    )
+    curves = plot.benchmark_csv_curves(csv)
+    assert [list(values) for _, values in curves("E-v0", "dipper", "rollout/low_value")] == [[-30.0, -20.0], [-40.0, -30.0]]
+    assert curves("E-v0", "sac", "rollout/subgoal_distance") == []
+    figure = plot.draw_hierarchical_metrics(curves, ["dipper", "sac"], ["E-v0"])
+    distance_axis, value_axis = figure.axes[:2]
+    assert [line.get_label() for line in distance_axis.get_lines()] == ["DIPPER"]
+    np.testing.assert_allclose(value_axis.get_lines()[0].get_ydata()[[0, -1]], [-35.0, -25.0])

@@ -15,6 +15,8 @@ loaders and draws its figure with :func:`draw_success`. Written to ``--out``:
   otherwise from the training episodes' ``is_success`` in the monitor files, smoothed over ``--window`` episodes.
 - ``hierarchical_metrics.{png,pdf}`` (Figure 3 of the paper): ``rollout/subgoal_distance`` and ``rollout/low_value``
   against steps from SB3's CSV logger (``progress.csv`` anywhere in a run folder); algorithms without them are left out.
+- with ``--benchmark-csv FILE``, only ``hierarchical_metrics`` from a ``benchmark.py`` CSV (the committed record of a
+  benchmark, whose run folders may be gone).
 - with ``--iqm``, ``final_success_iqm.{png,pdf,csv}``: the interquartile mean of the final success over seeds with
   stratified-bootstrap 95 % confidence intervals (``rliable``), one bar per algorithm and env.
 """
@@ -24,7 +26,7 @@ from __future__ import annotations
 import argparse
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -232,18 +234,42 @@ def plot_hierarchical_metrics(log_folders: Sequence[Path], algos: list[str], env
 
     Flat algorithms log neither metric and are left out; returns None when no run has them.
     """
+
+    def curves(env_id: str, algo: str, key: str) -> list[Curve]:
+        logs = [load_progress(run) for run in find_runs(log_folders, algo, env_id)]
+        return [curve for progress in logs if progress is not None and (curve := metric_curve(progress, key))]
+
+    return draw_hierarchical_metrics(curves, algos, envs)
+
+
+def benchmark_csv_curves(csv: Path) -> Callable[[str, str, str], list[Curve]]:
+    """The per-seed curves of a ``benchmark.py`` CSV (env, algo, seed, timesteps, success, subgoal_distance, low_value),
+    the committed record of a benchmark, keyed like progress.csv (``rollout/subgoal_distance``, ...)."""
+    table = pd.read_csv(csv)
+
+    def curves(env_id: str, algo: str, key: str) -> list[Curve]:
+        column = key.removeprefix("rollout/")
+        rows = table[(table["env"] == env_id) & (table["algo"] == algo)].dropna(subset=[column])
+        return [(run["timesteps"].to_numpy(), run[column].to_numpy()) for _, run in rows.groupby("seed")]
+
+    return curves
+
+
+def draw_hierarchical_metrics(
+    curves: Callable[[str, str, str], list[Curve]], algos: list[str], envs: list[str]
+) -> Figure | None:
+    """The hierarchical-metrics figure from ``curves(env_id, algo, key)``, the per-seed curves of one metric."""
     colors = _colors(algos)
     n_rows = len(HIERARCHICAL_METRICS)
     fig, axes = plt.subplots(n_rows, len(envs), figsize=(4.2 * len(envs), 3.4 * n_rows), squeeze=False, sharey="row")
     plotted = False
     for col, env_id in enumerate(envs):
         for algo in algos:
-            logs = [load_progress(run) for run in find_runs(log_folders, algo, env_id)]
             for row, key in enumerate(HIERARCHICAL_METRICS):
-                curves = [curve for progress in logs if progress is not None and (curve := metric_curve(progress, key))]
-                if not curves:
+                seeds = curves(env_id, algo, key)
+                if not seeds:
                     continue
-                steps, mean, std = aggregate(curves)
+                steps, mean, std = aggregate(seeds)
                 ax = axes[row, col]
                 ax.plot(steps, mean, color=colors[algo], label=label(algo))
                 ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2)
@@ -327,7 +353,18 @@ def main() -> None:
     parser.add_argument("--window", default=100, type=int, help="episodes to smooth monitor-based success over")
     parser.add_argument("--iqm", action="store_true", help="also plot the IQM of the final success (rliable)")
     parser.add_argument("--reps", default=2000, type=int, help="bootstrap samples of the IQM confidence intervals")
+    parser.add_argument(
+        "--benchmark-csv", type=Path, help="draw only the hierarchical metrics, from a benchmark.py CSV instead of run folders"
+    )
     args = parser.parse_args()
+
+    if args.benchmark_csv is not None:
+        figure = draw_hierarchical_metrics(benchmark_csv_curves(args.benchmark_csv), args.algos, args.envs)
+        if figure is None:
+            parser.exit(1, f"error: {args.benchmark_csv} has no subgoal distance or lower value for these runs\n")
+        for path in save(figure, args.out / "hierarchical_metrics", args.formats):
+            print(path)
+        return
 
     try:
         written = save(plot_success(args.log_folders, args.algos, args.envs, args.window), args.out / "success", args.formats)
