@@ -180,19 +180,27 @@ def throughput_models(env_id: str, net_arch: list[int]) -> dict[str, Any]:
     return models
 
 
+def interleaved_seconds(models: dict[str, Any], steps: int, repeats: int) -> dict[str, list[float]]:
+    """Seconds of each of ``repeats`` chunks of ``steps`` training steps per model, the models in a new random order
+    every round, so that every model meets the machine's changing load alike."""
+    seconds: dict[str, list[float]] = {algo: [] for algo in models}
+    order = list(models)
+    for _ in range(repeats):
+        random.shuffle(order)
+        for algo in order:
+            start = time.perf_counter()
+            models[algo].learn(steps, reset_num_timesteps=False)
+            seconds[algo].append(time.perf_counter() - start)
+    return seconds
+
+
 def run_throughput(args: argparse.Namespace) -> None:
     th.set_num_threads(torch_threads())
     models = throughput_models(args.env, args.net_arch)
     for model in models.values():
         model.learn(THROUGHPUT_LOWER["learning_starts"] + args.steps)
-    seconds: dict[str, list[float]] = {algo: [] for algo in models}
-    order = list(models)
-    for _ in range(args.repeats):
-        random.shuffle(order)
-        for algo in order:
-            start = time.perf_counter()
-            models[algo].learn(args.steps, reset_num_timesteps=False)
-            seconds[algo].append((time.perf_counter() - start) / args.steps)
+    seconds = interleaved_seconds(models, args.steps, args.repeats)
+    seconds = {algo: [chunk / args.steps for chunk in chunks] for algo, chunks in seconds.items()}
     per_step = {algo: statistics.median(values) for algo, values in seconds.items()}
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     (RESULTS_DIR / "throughput.json").write_text(json.dumps({"seconds_per_step": seconds, "median": per_step}, indent=1))
@@ -234,14 +242,7 @@ def run_profiles(args: argparse.Namespace) -> None:
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
             model.learn(int(getattr(model, "learning_starts", 0)) + args.steps)
-        seconds: dict[str, list[float]] = {algo: [] for algo in models}
-        order = list(models)
-        for _ in range(args.repeats):
-            random.shuffle(order)
-            for algo in order:
-                start = time.perf_counter()
-                models[algo].learn(args.steps, reset_num_timesteps=False)
-                seconds[algo].append(time.perf_counter() - start)
+        seconds = interleaved_seconds(models, args.steps, args.repeats)
         rates = {algo: args.steps / statistics.median(values) for algo, values in seconds.items()}
         baseline = rates.get("sac")
         for algo, rate in rates.items():
