@@ -28,6 +28,7 @@ from sb3_dipper.envs.fetch import (
 from sb3_dipper.envs.point_maze import shortest_cell_path
 
 MAZE = "FetchFourRoomMaze-v0"
+FIXED_MAZE = "FetchFourRoomMazeFixed-v0"
 FIXED_IDS = ["FetchPushFixed-v0", "FetchPickAndPlaceFixed-v0"]
 UPSTREAM_IDS = ["FetchPush-v4", "FetchPickAndPlace-v4"]
 ALL_IDS = [MAZE, *UPSTREAM_IDS, *FIXED_IDS]
@@ -64,11 +65,19 @@ def maze_grid(obs: dict) -> np.ndarray:
 def test_ids_registered_idempotently_with_their_experts():
     register_fetch_envs()
     register_fetch_envs()
-    assert gym.registry[MAZE].max_episode_steps == 225
+    assert gym.registry[MAZE].max_episode_steps == gym.registry[FIXED_MAZE].max_episode_steps == 225
+    assert gym.registry[FIXED_MAZE].kwargs == {"fixed_layout": True}
     for env_id in FIXED_IDS + UPSTREAM_IDS:
         assert gym.registry[env_id].max_episode_steps == 50
-    assert set(EXPERTS) == set(ALL_IDS)
-    assert all(ALL_EXPERTS[env_id] is EXPERTS[env_id] for env_id in ALL_IDS)
+    assert set(EXPERTS) == {*ALL_IDS, FIXED_MAZE}
+    assert all(ALL_EXPERTS[env_id] is EXPERTS[env_id] for env_id in EXPERTS)
+
+
+def test_the_fixed_maze_id_is_the_authors_layout_every_episode():
+    env = gym.make(FIXED_MAZE)
+    grids = [env.reset(seed=seed)[0]["observation"][3:] for seed in range(3)]
+    assert all(np.array_equal(grid, grids[0]) for grid in grids)
+    env.close()
 
 
 # gymnasium-robotics' own FetchPush-v4 and FetchPickAndPlace-v4 return float32 rewards, which check_env refuses.
