@@ -63,14 +63,21 @@ def test_paper_scale_entries_build(algo):
     env.close()
 
 
-def test_dipper_on_the_paper_tasks_is_the_papers_dipper():
+# Tasks where a run showed the switches beyond the paper help (BENCHMARKS.md, "the paper's tasks on a CPU").
+MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0"}
+
+
+def test_dipper_switches_are_on_only_where_measured():
     """No switch beyond the paper is on for a paper task until a measurement there shows it helps."""
     switches = ("nll_coef", "hindsight_actions", "truncate_at_goal", "planning", "planning_lookahead")
     for directory in (hyperparams_dir(), PAPER_DIR):
         for env_id in PAPER_TASKS:
             entry = load_entry("dipper", env_id, directory)
-            assert not any(key in entry for key in switches), (directory, env_id)
-            assert "acting_tau" not in entry["policy_kwargs"], (directory, env_id)
+            measured = directory == hyperparams_dir() and env_id in MEASURED_SWITCHES
+            assert all(key in entry for key in switches) == measured, (directory, env_id)
+            assert any(key in entry for key in switches) == measured, (directory, env_id)
+            assert ("acting_tau" in entry["policy_kwargs"]) == measured, (directory, env_id)
+            assert load_entry("dipper_paper", env_id, directory)["policy_kwargs"].get("acting_tau") is None
 
 
 @pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
