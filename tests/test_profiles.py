@@ -8,20 +8,12 @@ import torch as th
 import yaml
 
 from sb3_dipper.zoo import hyperparams_dir
+from tests.test_zoo import PAPER_TASKS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
 from configs import load_entry, make_model
 
 PAPER_DIR = hyperparams_dir() / "paper"
-PAPER_TASKS = [
-    "FetchFourRoomMaze-v0",
-    "FetchFourRoomMazeFixed-v0",
-    "FetchPickAndPlace-v4",
-    "FetchPickAndPlaceFixed-v0",
-    "FetchPush-v4",
-    "FetchPushFixed-v0",
-    "FrankaKitchenMicrowaveBurner-v0",
-]
 ALGOS = sorted(path.stem for path in hyperparams_dir().glob("*.yml"))
 # Widest network and largest batch a CPU profile may use: one core trains it within about 90 minutes per run.
 CPU_WIDTH, CPU_BATCH = 256, 256
