@@ -18,7 +18,7 @@ import sys
 import time
 from abc import abstractmethod
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -34,7 +34,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.demonstrations import load_demonstrations
-from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_model_atomically, save_replay_buffer_file
+from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical_policy import (
     ActingLowLevel,
     HierarchicalPolicy,
@@ -570,13 +570,6 @@ class HierarchicalAlgorithm(CheckedLoading):
     def replay_buffer(self) -> ReplayBuffer | None:
         """The lower replay buffer (so that ``CheckpointCallback(save_replay_buffer=True)`` saves the buffers)."""
         return self.lower.replay_buffer
-
-    def save(self, path: Any, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None) -> None:
-        """SB3's ``save``; to a path, the zip is written under a temporary name and renamed into place.
-
-        A run killed while saving leaves the previous complete zip (or none), never a truncated one.
-        """
-        save_model_atomically(super().save, path, exclude, include)
 
     def save_replay_buffer(self, path: Any) -> None:
         """Save the lower replay buffer (SB3's pickle at ``path``) and the higher level's data in files beside it.

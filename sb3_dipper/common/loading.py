@@ -26,6 +26,8 @@ from stable_baselines3.common.save_util import open_path, recursive_getattr, rec
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dipper.common.files import save_model_atomically
+
 SelfCheckedLoading = TypeVar("SelfCheckedLoading", bound="CheckedLoading")
 
 
@@ -90,9 +92,13 @@ class CheckedLoading(BaseAlgorithm):
     max_episode_steps: int | None = None
 
     def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
-        """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly."""
+        """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly.
+
+        To a path, the zip is written under a temporary name and renamed into place: a run killed while saving leaves
+        the previous complete zip (or none), never a truncated one.
+        """
         self.saved_by = type(self).__name__
-        super().save(path, exclude, include)
+        save_model_atomically(super().save, path, exclude, include)
 
     @classmethod
     def load(  # type: ignore[override]

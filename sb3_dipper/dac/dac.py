@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import os
 from collections import defaultdict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
@@ -72,7 +72,6 @@ from sb3_dipper.common.files import (
     read_npz,
     read_replay_buffer,
     replay_buffer_path,
-    save_model_atomically,
     save_npz,
     save_replay_buffer_file,
 )
@@ -763,10 +762,6 @@ class DAC(CheckedLoading, SAC):
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "discriminator", "discriminator.optimizer"], variables
-
-    def save(self, path: Any, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None) -> None:
-        """SB3's ``save``; to a path, the zip is written under a temporary name and renamed into place."""
-        save_model_atomically(super().save, path, exclude, include)
 
     def save_replay_buffer(self, path: Any) -> None:
         """SB3's replay buffer (pickle at ``path``) and, beside it, the absorbing self-transitions (npz).

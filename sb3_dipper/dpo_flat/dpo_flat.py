@@ -22,7 +22,6 @@ PIPER code has the analogous RFLAT, a flat SAC on a preference-learned reward).
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -37,7 +36,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dipper.common.files import replay_buffer_path, save_model_atomically
+from sb3_dipper.common.files import replay_buffer_path
 from sb3_dipper.common.hierarchical import sibling_path
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
@@ -415,10 +414,6 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.actor.optimizer"], []
-
-    def save(self, path: Any, exclude: Iterable[str] | None = None, include: Iterable[str] | None = None) -> None:
-        """SB3's ``save``; to a path, the zip is written under a temporary name and renamed into place."""
-        save_model_atomically(super().save, path, exclude, include)
 
     def save_replay_buffer(self, path: Any) -> None:
         """The stored episodes and labelled pairs, as npz (read without pickle) beside ``path`` (``x.pkl`` -> ``x.npz``).
