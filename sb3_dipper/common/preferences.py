@@ -133,11 +133,34 @@ def labels_from_scores(scores: np.ndarray) -> np.ndarray:
 
 
 class PreferenceSource(ABC):
-    """Gives preference labels to trajectory pairs (a scripted labeller, an oracle, people)."""
+    """Gives preference labels to trajectory pairs (a scripted labeller, an oracle, people).
+
+    A synchronous source labels every pair in :meth:`label`. An asynchronous one (people) may instead queue a pair,
+    answer NaN for it, and hand the pair back labelled from a later :meth:`collect`; until then it counts in
+    :attr:`pending`. Training never waits for it: labelled pairs join the dataset, queued ones when they arrive.
+    """
 
     @abstractmethod
     def label(self, pairs: TrajectoryPairs) -> np.ndarray:
-        """Labels in {0, 0.5, 1} for each pair (1: the first trajectory is preferred)."""
+        """Labels in {0, 0.5, 1} for each pair (1: the first trajectory is preferred), NaN for a pair left queued."""
+
+    @property
+    def pending(self) -> int:
+        """Pairs queued by :meth:`label` whose label has not arrived yet (they count against the label budget)."""
+        return 0
+
+    def collect(self) -> TrajectoryPairs | None:
+        """Queued pairs whose labels arrived since the last call, labelled (``None``: none)."""
+        return None
+
+
+def add_new_labels(dataset: PreferenceDataset, source: PreferenceSource, pairs: TrajectoryPairs | None) -> None:
+    """Add the pairs ``source`` labelled since the last call, then those of ``pairs`` it labelled now (NaN: queued)."""
+    arrived = source.collect()
+    if arrived is not None:
+        dataset.add(arrived)
+    if pairs is not None:
+        dataset.add(pairs.select(np.flatnonzero(~np.isnan(pairs.labels))))
 
 
 class PrimitiveInTheLoopLabeler(PreferenceSource):
@@ -301,11 +324,16 @@ class PairShapes:
         )
 
 
-def pairs_due(dataset: PreferenceDataset, label_budget: int, num_timesteps: int, total_timesteps: int) -> int:
-    """How many new pairs to label now, so the dataset grows in step with training and reaches the budget at the end."""
+def pairs_due(
+    dataset: PreferenceDataset, label_budget: int, num_timesteps: int, total_timesteps: int, pending: int = 0
+) -> int:
+    """How many new pairs to label now, so the dataset grows in step with training and reaches the budget at the end.
+
+    :param pending: pairs already asked for and still waiting for their label (:attr:`PreferenceSource.pending`)
+    """
     progress = min(1.0, num_timesteps / max(total_timesteps, 1))
-    wanted = max(1, int(label_budget * progress)) - len(dataset)
-    return max(0, min(wanted, MAX_NEW_PAIRS_PER_ROUND, dataset.remaining))
+    wanted = max(1, int(label_budget * progress)) - len(dataset) - pending
+    return max(0, min(wanted, MAX_NEW_PAIRS_PER_ROUND, dataset.remaining - pending))
 
 
 def flat_pair_observations(pairs: TrajectoryPairs) -> dict[str, np.ndarray]:

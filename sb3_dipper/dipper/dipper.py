@@ -27,6 +27,7 @@ from sb3_dipper.common.preferences import (
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    add_new_labels,
     flat_pair_observations,
     pairs_due,
     read_preference_data,
@@ -38,6 +39,7 @@ from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import as_float, as_int, as_optional_float, sparse_goal_reached_fn
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
 
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
@@ -88,7 +90,9 @@ class DIPPER(HierarchicalAlgorithm):
     :param planning_value_threshold: keep a graph edge only if the lower level's value ``min_i Q_i(s, g, mu(s, g))`` of
         reaching its target voxel from the start of some option that took it is at least this (``None``: keep all)
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
-    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward)
+    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
+        ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
+        :func:`~sb3_dipper.labelling.sources.preference_source_from`)
     :param buffer_size: lower-level replay buffer size
     :param learning_starts: primitive steps of random subgoals and lower actions before learning
     :param batch_size: lower-level minibatch size
@@ -149,7 +153,7 @@ class DIPPER(HierarchicalAlgorithm):
         planning_resolution: float | None = None,
         planning_value_threshold: float | None = None,
         trajectory_buffer_size: int = 5000,
-        preference_source: PreferenceSource | None = None,
+        preference_source: PreferenceSourceSpec = None,
         buffer_size: int = 1_000_000,
         learning_starts: int = 3000,
         batch_size: int = 256,
@@ -272,12 +276,12 @@ class DIPPER(HierarchicalAlgorithm):
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
         # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
-        self._labeler: PreferenceSource | None = self.preference_source
+        self._labeler: PreferenceSource | None = None
         if self.env is not None:
             self._goal_reached = sparse_goal_reached_fn(self.env)
-            if self._labeler is None:
-                value_score = self._pair_value_score if self.value_reg == "score" else None
-                self._labeler = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
+            value_score = self._pair_value_score if self.value_reg == "score" else None
+            script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
+            self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
 
     def learn(
         self: SelfDIPPER,
@@ -418,14 +422,18 @@ class DIPPER(HierarchicalAlgorithm):
     def _label_new_pairs(self) -> None:
         """Label new pairs so the dataset grows in step with training, up to the label budget."""
         assert self.subgoal_space is not None and self._labeler is not None
-        n_new = pairs_due(self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps)
+        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
+        add_new_labels(self.preferences, self._labeler, None)
+        n_new = pairs_due(
+            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
+        )
         if n_new == 0 or len(self.trajectory_buffer) < 2:
             return
         pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
         if self.truncate_at_goal:
             pairs = truncate_at_first_arrival(pairs, self._goal_reached)
         pairs.labels = self._labeler.label(pairs)
-        self.preferences.add(pairs)
+        add_new_labels(self.preferences, self._labeler, pairs)
 
     def _pair_actions(self, pairs: TrajectoryPairs) -> np.ndarray:
         return pairs.reached_actions if self.hindsight_actions else pairs.actions

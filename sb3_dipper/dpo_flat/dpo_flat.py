@@ -45,6 +45,7 @@ from sb3_dipper.common.preferences import (
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    add_new_labels,
     flat_pair_observations,
     load_preference_data,
     pairs_due,
@@ -61,6 +62,7 @@ from sb3_dipper.common.validation import (
 )
 from sb3_dipper.dipper.policies import DIPPERPolicy
 from sb3_dipper.dpo_flat.policies import MlpPolicy, MultiInputPolicy
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
 
 SelfDPOFlat = TypeVar("SelfDPOFlat", bound="DPOFlat")
 
@@ -155,7 +157,9 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
     :param random_action_prob: probability of a uniformly random action at a step (exploration, on top of the policy's
         own sampling)
     :param trajectory_buffer_size: number of episodes kept for cutting segments
-    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward)
+    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
+        ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
+        :func:`~sb3_dipper.labelling.sources.preference_source_from`)
     :param learning_starts: steps of uniformly random actions before learning
     :param train_freq: train every ``train_freq`` steps (or ``(n, "episode")``)
     :param gradient_steps: DPO gradient steps per training round
@@ -185,7 +189,7 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         nll_coef: float = 0.0,
         random_action_prob: float = 0.2,
         trajectory_buffer_size: int = 2000,
-        preference_source: PreferenceSource | None = None,
+        preference_source: PreferenceSourceSpec = None,
         learning_starts: int = 1000,
         train_freq: int | tuple[int, str] = 1,
         gradient_steps: int = 1,
@@ -274,7 +278,7 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         )
         self.preferences = PreferenceDataset(self.n_preference_pairs)
         self._reference_log_prob = uniform_log_prob(int(np.prod(self.action_space.shape)))  # type: ignore[arg-type]
-        self._labeler: PreferenceSource | None = self.preference_source
+        self._labeler: PreferenceSource | None = None
 
     def _ensure_full_trajectory_buffer(self) -> None:
         """A model loaded without an env gets its full-size episode store once it is to learn or load episodes."""
@@ -316,7 +320,8 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
             self.trajectory_buffer.discard_open()
         if self._labeler is None:
             assert self.env is not None
-            self._labeler = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env))
+            script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env))
+            self._labeler = preference_source_from(self.preference_source, script, self.env, None, self.seed)
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     # ---------------------------------------------------------------------------------------------------- acting
@@ -389,12 +394,16 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
     def _label_new_pairs(self) -> None:
         """Label new pairs so the dataset grows in step with training, up to the label budget."""
         assert self._labeler is not None
-        n_new = pairs_due(self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps)
+        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
+        add_new_labels(self.preferences, self._labeler, None)
+        n_new = pairs_due(
+            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
+        )
         if n_new == 0 or len(self.trajectory_buffer) == 0:
             return
         pairs = sample_segment_pairs(self.trajectory_buffer, n_new, self.segment_length, self.hindsight_goal_prob, self._rng)
         pairs.labels = self._labeler.label(pairs)
-        self.preferences.add(pairs)
+        add_new_labels(self.preferences, self._labeler, pairs)
 
     def _pair_tensors(self, pairs: TrajectoryPairs) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, th.Tensor]:
         """Every step of both segments as one batch: (normalised) observations and actions, plus the mask and labels."""

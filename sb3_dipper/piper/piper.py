@@ -52,6 +52,7 @@ from sb3_dipper.common.preferences import (
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    add_new_labels,
     flat_pair_observations,
     pairs_due,
     read_preference_data,
@@ -62,6 +63,7 @@ from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import as_float, as_int, sparse_goal_reached_fn
 from sb3_dipper.hier.hier import HIER
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
 from sb3_dipper.piper.policies import RewardModel
 
 SelfPIPER = TypeVar("SelfPIPER", bound="PIPER")
@@ -172,7 +174,9 @@ class PIPER(HIER):
     :param n_preference_pairs: the label budget: pairs labelled over the whole run, spread over training
     :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
-    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward)
+    :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
+        ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
+        :func:`~sb3_dipper.labelling.sources.preference_source_from`)
     :param reward_batch_size: pairs per reward-model update (the authors' ``reward_batch_size``, 50)
     :param reward_gradient_steps: reward-model updates per option
     :param reward_learning_rate: learning rate of the reward model
@@ -231,7 +235,7 @@ class PIPER(HIER):
         n_preference_pairs: int = 10_000,
         hindsight_goal_prob: float = 0.8,
         trajectory_buffer_size: int = 5000,
-        preference_source: PreferenceSource | None = None,
+        preference_source: PreferenceSourceSpec = None,
         reward_batch_size: int = 50,
         reward_gradient_steps: int = 1,
         reward_learning_rate: float = 1e-3,
@@ -353,10 +357,11 @@ class PIPER(HIER):
             self.n_envs,
         )
         self.preferences = PreferenceDataset(self.n_preference_pairs)
-        self._labeler: PreferenceSource | None = self.preference_source
-        if self.env is not None and self._labeler is None:
+        self._labeler: PreferenceSource | None = None
+        if self.env is not None:
             value_score = self._pair_value_score if self.value_reg_coef != 0.0 else None
-            self._labeler = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env), value_score)
+            script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env), value_score)
+            self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
 
     def learn(
         self: SelfPIPER,
@@ -402,12 +407,16 @@ class PIPER(HIER):
     def _label_new_pairs(self) -> None:
         """Label new pairs so the dataset grows in step with training, up to the label budget (as DIPPER does)."""
         assert self.subgoal_space is not None and self._labeler is not None
-        n_new = pairs_due(self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps)
+        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
+        add_new_labels(self.preferences, self._labeler, None)
+        n_new = pairs_due(
+            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
+        )
         if n_new == 0 or len(self.trajectory_buffer) < 2:
             return
         pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
         pairs.labels = self._labeler.label(pairs)
-        self.preferences.add(pairs)
+        add_new_labels(self.preferences, self._labeler, pairs)
 
     def _train_reward_model(self) -> None:
         """Fit ``r_phi`` to the labelled pairs by the Bradley-Terry loss over the trajectories' summed rewards."""

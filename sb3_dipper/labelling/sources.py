@@ -1,0 +1,271 @@
+"""Preference sources beyond the primitive-in-the-loop labeller: noisy scripted labels and labels from people.
+
+:class:`NoisyLabeler` flips the scripted answer with probability ``noise`` (a simulated, imperfect person).
+:class:`QueuedPreferenceSource` sends pairs to people through a :class:`~sb3_dipper.labelling.queue.LabelQueue`
+directory and hands them to training when the answers arrive; with ``person_fraction < 1`` or ``to_person`` it labels
+the other pairs with the script at once (mixed mode), and records who labelled each pair.
+
+DIPPER, PIPER and DPO-FLAT take either as ``preference_source``, or a YAML-friendly description of one (a string or a
+dict, see :func:`preference_source_from`), so the zoo's YAML files and ``-params`` can choose them.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_dipper.common.preferences import PreferenceSource, TrajectoryPairs
+from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
+
+PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
+
+SPEC_HELP = (
+    "a PreferenceSource, None (primitive-in-the-loop labels), 'primitive', 'noisy:P[:SEED]', 'people:DIRECTORY', "
+    "'mixed:DIRECTORY:FRACTION', or a dict with kind ('noisy', 'people' or 'mixed') and the source's keyword arguments"
+)
+
+
+class NoisyLabeler(PreferenceSource):
+    """The scripted (primitive-in-the-loop) answer, flipped with probability ``noise``; ties answered at random.
+
+    Every label is 0 or 1, as from a person who must pick one trajectory and errs at rate ``noise``.
+
+    :param noise: the probability of flipping the scripted answer, in [0, 0.5]
+    :param seed: seed of the flips and tie-breaks
+    :param script: the scripted labeller (default: the algorithm's primitive-in-the-loop labeller)
+    """
+
+    def __init__(self, noise: float, seed: int | None = 0, script: PreferenceSource | None = None) -> None:
+        if not isinstance(noise, (int, float)) or not 0.0 <= noise <= 0.5:
+            raise ValueError(
+                f"NoisyLabeler noise must be a probability in [0, 0.5], got {noise!r}: above 0.5 the labels mostly "
+                "disagree with the script (swap the preference instead)"
+            )
+        self.noise = float(noise)
+        self.seed = seed
+        self.script = script
+        self._rng = np.random.default_rng(seed)
+
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        if self.script is None:
+            raise ValueError("NoisyLabeler needs a script: pass script=..., or give it to an algorithm as preference_source")
+        labels = np.asarray(self.script.label(pairs), dtype=np.float32).copy()
+        ties = labels == 0.5
+        labels[ties] = self._rng.integers(2, size=int(ties.sum()))
+        flip = self._rng.random(labels.shape[0]) < self.noise
+        labels[flip] = 1.0 - labels[flip]
+        return labels
+
+
+class QueuedPreferenceSource(PreferenceSource):
+    """Labels from people: pairs are queued in ``directory`` and reach training when someone labels them.
+
+    :meth:`label` never waits: it answers NaN for the pairs it queues, and :meth:`collect` returns those labelled since
+    (skipped pairs are dropped). Pairs meant for people once ``budget`` pairs were queued get the script's label, or
+    none without a script. A source started on a directory with queued pairs takes over those still waiting; with
+    ``reuse_labels`` it also hands training every label already given (a restarted run keeps people's work).
+
+    :param directory: the label queue directory, shared with the page (``sb3-dipper-label --run DIRECTORY``)
+    :param person_fraction: the share of new pairs sent to people; the script labels the others at once (mixed mode)
+    :param to_person: ``to_person(pairs) -> (B,) bool``, which pairs go to people (replaces ``person_fraction``)
+    :param budget: the most pairs ever queued for people in ``directory`` (``None``: only the algorithm's budget)
+    :param script: the scripted labeller of the others (default: the algorithm's primitive-in-the-loop labeller)
+    :param reuse_labels: hand training the labels already in ``directory`` when the source starts
+    :param seed: seed of the draw of which pairs go to people
+    """
+
+    def __init__(
+        self,
+        directory: str,
+        person_fraction: float = 1.0,
+        to_person: Callable[[TrajectoryPairs], np.ndarray] | None = None,
+        budget: int | None = None,
+        script: PreferenceSource | None = None,
+        reuse_labels: bool = True,
+        seed: int | None = 0,
+    ) -> None:
+        if not isinstance(person_fraction, (int, float)) or not 0.0 <= person_fraction <= 1.0:
+            raise ValueError(f"person_fraction must be a share in [0, 1], got {person_fraction!r}")
+        if budget is not None and (not isinstance(budget, int) or budget < 0):
+            raise ValueError(f"budget must be an integer >= 0 (pairs queued for people) or None, got {budget!r}")
+        self.directory = str(directory)
+        self.person_fraction = float(person_fraction)
+        self.to_person = to_person
+        self.budget = budget
+        self.script = script
+        self.reuse_labels = reuse_labels
+        self.seed = seed
+        self.queue_info: dict[str, Any] = {}
+        self._queue: LabelQueue | None = None
+        self._pending: set[int] = set()
+        self._handed: set[int] = set()
+        self._next_id = 0
+        self._rng = np.random.default_rng(seed)
+
+    @property
+    def queue(self) -> LabelQueue:
+        """The directory's files; the first use takes over what an earlier run left there."""
+        if self._queue is None:
+            queue = LabelQueue(self.directory)
+            queue.directory.mkdir(parents=True, exist_ok=True)
+            if self.queue_info:
+                queue.write_info(self.queue_info)
+            self._pending = set(queue.waiting_ids())
+            self._handed = set() if self.reuse_labels else set(queue.answers().pair_ids.tolist())
+            self._next_id = queue.next_free_id()
+            self._queue = queue
+        return self._queue
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending - set(self.queue.answers().pair_ids.tolist()))
+
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        queue = self.queue
+        n_pairs = len(pairs)
+        if self.to_person is not None:
+            for_person = np.asarray(self.to_person(pairs), dtype=bool).reshape(n_pairs)
+        else:
+            for_person = self._rng.random(n_pairs) < self.person_fraction
+        if self.budget is not None:
+            room = max(0, self.budget - len(queue.queued_ids()))
+            for_person &= np.cumsum(for_person) <= room
+        labels = np.full(n_pairs, np.nan, dtype=np.float32)
+        pair_ids = np.arange(self._next_id, self._next_id + n_pairs)
+        self._next_id += n_pairs
+        for index in np.flatnonzero(for_person):
+            queue.write_pair(int(pair_ids[index]), pairs, int(index))
+            self._pending.add(int(pair_ids[index]))
+        scripted = np.flatnonzero(~for_person)
+        if scripted.size and self.script is not None:
+            labels[scripted] = self.script.label(pairs.select(scripted))
+            queue.append_handed(pair_ids[scripted], labels[scripted], np.full(scripted.size, SCRIPT))
+        return labels
+
+    def collect(self) -> TrajectoryPairs | None:
+        queue = self.queue
+        answers = queue.answers().as_dict()
+        self._pending -= set(answers)
+        labelled = [pair_id for pair_id, label in answers.items() if not math.isnan(label)]
+        arrived = sorted(pair_id for pair_id in labelled if pair_id not in self._handed)
+        if not arrived:
+            return None
+        batch = concatenate_pairs([queue.read_pair(pair_id, answers[pair_id]) for pair_id in arrived])
+        self._handed.update(arrived)
+        queue.append_handed(np.array(arrived), batch.labels, np.full(len(arrived), PERSON))
+        return batch
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The file cache is rebuilt from the directory on first use.
+        return {**self.__dict__, "_queue": None}
+
+
+def concatenate_pairs(batches: list[TrajectoryPairs]) -> TrajectoryPairs:
+    """One batch of all pairs of ``batches`` (same keys and trajectory length)."""
+    return TrajectoryPairs(
+        observations={key: np.concatenate([b.observations[key] for b in batches], axis=1) for key in batches[0].observations},
+        actions=np.concatenate([b.actions for b in batches], axis=1),
+        reached_actions=np.concatenate([b.reached_actions for b in batches], axis=1),
+        next_achieved_goals=np.concatenate([b.next_achieved_goals for b in batches], axis=1),
+        mask=np.concatenate([b.mask for b in batches], axis=1),
+        labels=np.concatenate([b.labels for b in batches]).astype(np.float32),
+    )
+
+
+def queue_info(env: VecEnv | None, subgoal_space: SubgoalSpace | None) -> dict[str, Any]:
+    """What the page needs to draw the pairs of a model: its env id and kwargs, and its subgoal space (if any)."""
+    info: dict[str, Any] = {"env_id": None, "env_kwargs": {}, "subgoal_space": None}
+    if env is not None:
+        spec = env.get_attr("spec", indices=[0])[0]
+        if spec is not None:
+            info["env_id"] = spec.id
+            info["env_kwargs"] = {key: value for key, value in spec.kwargs.items() if _is_json(value)}
+    if subgoal_space is not None:
+        info["subgoal_space"] = {
+            "low": subgoal_space.low.tolist(),
+            "high": subgoal_space.high.tolist(),
+            "threshold": float(subgoal_space.threshold),
+            "indices": None if subgoal_space.indices is None else list(subgoal_space.indices),
+        }
+    return info
+
+
+def _is_json(value: Any) -> bool:
+    if isinstance(value, (list, tuple)):
+        return all(_is_json(item) for item in value)
+    if isinstance(value, dict):
+        return all(isinstance(key, str) and _is_json(item) for key, item in value.items())
+    return value is None or isinstance(value, (bool, int, float, str))
+
+
+def preference_source_from(
+    spec: PreferenceSourceSpec,
+    script: PreferenceSource,
+    env: VecEnv | None = None,
+    subgoal_space: SubgoalSpace | None = None,
+    seed: int | None = None,
+) -> PreferenceSource:
+    """The preference source an algorithm's ``preference_source`` describes, using ``script`` where it needs one.
+
+    A source that was given without a script gets ``script`` in a copy, so the algorithm's own labeller (which may
+    hold the model) never enters the configured ``preference_source`` the model saves.
+
+    :param spec: :data:`SPEC_HELP`
+    :param script: the algorithm's primitive-in-the-loop labeller
+    :param env: the model's env, whose id and kwargs a label queue records for the page
+    :param subgoal_space: the model's subgoal space (``None``: pairs of primitive actions), recorded for the page
+    :param seed: the model's seed, for sources described without one
+    """
+    if spec is None or spec == "primitive":
+        return script
+    if isinstance(spec, str):
+        spec = _parse_spec(spec)
+    if isinstance(spec, dict):
+        options = dict(spec)
+        kind = options.pop("kind", None)
+        classes: dict[str, type[PreferenceSource]] = {"noisy": NoisyLabeler, "people": QueuedPreferenceSource}
+        if kind == "mixed":
+            kind = "people"
+            options.setdefault("person_fraction", 0.5)
+        if kind not in classes:
+            raise ValueError(f"Unknown preference_source kind {kind!r}: preference_source is {SPEC_HELP}")
+        options.setdefault("seed", seed)
+        try:
+            spec = classes[kind](**options)
+        except TypeError as error:
+            raise ValueError(f"Bad preference_source {spec!r} ({error}): preference_source is {SPEC_HELP}") from error
+    if not isinstance(spec, PreferenceSource):
+        raise ValueError(f"Bad preference_source {spec!r}: preference_source is {SPEC_HELP}")
+    # A copy: the algorithm's script (which may hold the model) must not enter the saved preference_source.
+    if isinstance(spec, QueuedPreferenceSource) or (isinstance(spec, NoisyLabeler) and spec.script is None):
+        spec = copy.copy(spec)
+        spec.script = spec.script or script
+        spec._rng = np.random.default_rng(spec.seed)
+        if isinstance(spec, QueuedPreferenceSource):
+            spec.queue_info = queue_info(env, subgoal_space)
+            spec._pending, spec._handed = set(), set()
+    return spec
+
+
+def _parse_spec(text: str) -> dict[str, Any]:
+    kind, _, rest = text.partition(":")
+    try:
+        if kind == "noisy":
+            noise, _, seed = rest.partition(":")
+            return {"kind": "noisy", "noise": float(noise), **({"seed": int(seed)} if seed else {})}
+        if kind == "people" and rest:
+            return {"kind": "people", "directory": rest}
+        if kind == "mixed" and rest:
+            directory, _, fraction = rest.rpartition(":")
+            if not directory:
+                return {"kind": "mixed", "directory": rest}
+            return {"kind": "mixed", "directory": directory, "person_fraction": float(fraction)}
+    except ValueError as error:
+        raise ValueError(f"Bad preference_source {text!r} ({error}): preference_source is {SPEC_HELP}") from error
+    raise ValueError(f"Bad preference_source {text!r}: preference_source is {SPEC_HELP}")
