@@ -10,9 +10,11 @@ TEST_WORKERS ?= 2
 # (pytest, ruff, mypy, ray, minari), so a demo machine never installs them.
 STAMP := $(VENV)/.sb3-dipper-installed
 TEST_STAMP := $(VENV)/.sb3-dipper-tests-installed
+# The documentation tools (sphinx, its theme, myst-parser for the Markdown changelog), for `make docs` only.
+DOCS_STAMP := $(VENV)/.sb3-dipper-docs-installed
 export MUJOCO_GL ?= egl
 
-.PHONY: demo test test-slow lint format venv clean
+.PHONY: demo test test-slow lint format venv clean docs
 
 venv: $(STAMP)
 
@@ -27,11 +29,21 @@ $(TEST_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[zoo,plots,tests]"
 	touch $(TEST_STAMP)
 
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[zoo,plots,docs]"
+	touch $(DOCS_STAMP)
+
 demo: $(STAMP)
 	$(PY) zoo_scripts/demo.py --output-dir demo_output
 
 test: $(TEST_STAMP)
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --durations=15
+
+# The site in docs/_build/html, offline: the doctest builder runs the pages' examples (tiny budgets), then the HTML
+# build reuses its parsed pages; any Sphinx warning fails.
+docs: $(DOCS_STAMP)
+	$(PY) -m sphinx -W --keep-going -q -b doctest -d docs/_build/doctrees docs docs/_build/doctest
+	$(PY) -m sphinx -W --keep-going -q -b html -d docs/_build/doctrees docs docs/_build/html
 
 test-slow: $(TEST_STAMP)
 	$(PY) -m pytest -q -m slow --durations=15

@@ -44,6 +44,8 @@ setup(
         "minari": ["minari[hdf5]>=0.5"],
         # zoo_scripts/benchmark.py --ray-address: learning runs as tasks on a Ray cluster.
         "cluster": ["ray>=2.9"],
+        # `make docs`: the Sphinx site (the SB3 family's theme; myst-parser includes the Markdown changelog).
+        "docs": ["sphinx>=7,<10", "sphinx-rtd-theme>=2,<4", "myst-parser>=2,<6"],
         "tests": [
             "pytest>=8",
             "pytest-timeout",

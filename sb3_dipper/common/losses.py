@@ -43,10 +43,10 @@ def dipper_logits(
     value_gaps: th.Tensor | None = None,
     value_reg_coef: float = 0.0,
 ) -> th.Tensor:
-    """The logit ``z`` of Eq. 9, one per pair.
+    """The logit ``z`` of Eq. 9, one per pair::
 
-    ``z = sum_t beta * (log pi(u^1_t) - log pi_ref) - sum_t beta * (log pi(u^2_t) - log pi_ref)
-          - lambda * sum_t [(V^L - V^L_m)(s^1_t, g^1_t) - (V^L - V^L_m)(s^2_t, g^2_t)]``
+        z = sum_t beta * (log pi(u^1_t) - log pi_ref) - sum_t beta * (log pi(u^2_t) - log pi_ref)
+            - lambda * sum_t [(V^L - V^L_m)(s^1_t, g^1_t) - (V^L - V^L_m)(s^2_t, g^2_t)]
 
     With trajectories of equal length the uniform reference cancels; it is kept so unequal lengths compare fairly.
 
