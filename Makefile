@@ -27,6 +27,8 @@ $(STAMP): setup.py
 
 $(TEST_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[zoo,plots,tests]"
+	# The labelling page's browser test drives the system's headless Chromium (Debian packages).
+	command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium chromium-driver)
 	touch $(TEST_STAMP)
 
 $(DOCS_STAMP): $(STAMP)

@@ -44,6 +44,8 @@ setup(
         "minari": ["minari[hdf5]>=0.5"],
         # zoo_scripts/benchmark.py --ray-address: learning runs as tasks on a Ray cluster.
         "cluster": ["ray>=2.9"],
+        # sb3-dipper-label: the labelling page (Flask) and its pictures of pairs (matplotlib).
+        "label": ["flask>=3", "matplotlib>=3.7"],
         # `make docs`: the Sphinx site (the SB3 family's theme; myst-parser includes the Markdown changelog).
         "docs": ["sphinx>=7,<10", "sphinx-rtd-theme>=2,<4", "myst-parser>=2,<6"],
         "tests": [
@@ -57,10 +59,17 @@ setup(
             "ray>=2.9",
             # tests/test_sb3_contracts.py trains with tensorboard_log=.
             "tensorboard>=2.9",
+            # tests/test_labelling.py: the labelling page, driven in the system's headless Chromium.
+            "flask>=3",
+            "selenium>=4.20",
         ],
     },
     entry_points={
-        "console_scripts": ["sb3-dipper-demos = sb3_dipper.envs.demos:main", "sb3-dipper-zoo = sb3_dipper.zoo:main"]
+        "console_scripts": [
+            "sb3-dipper-demos = sb3_dipper.envs.demos:main",
+            "sb3-dipper-zoo = sb3_dipper.zoo:main",
+            "sb3-dipper-label = sb3_dipper.labelling.app:main",
+        ]
     },
     license="MIT",
     classifiers=[

@@ -1,0 +1,262 @@
+"""The labelling page: a local Flask app that shows queued pairs side by side and records people's choices.
+
+    sb3-dipper-label --run RUN_OR_LABELS_DIR [--port 5000] [--host 127.0.0.1] [--show-skipped]
+
+``--run`` is a label queue directory (what ``preference_source="people:DIRECTORY"`` names) or a folder holding one
+as ``labels/``. The page shows one waiting pair at a time: the left (first) and right (second) trajectory, both
+toward the pair's goal (see :mod:`sb3_dipper.labelling.render`), and buttons, with keys, for left (Left arrow or
+``a``), right (Right arrow or ``d``), equal (Down arrow or ``e``) and skip (``s``), and counts of labelled and waiting
+pairs. A pair is handed to one tab at a time (each tab has its own client id), and the first answer for a pair is the
+only one recorded: a second, from another tab, is refused. Answers go to ``labels.npz`` at once, so a restarted page
+goes on with the pairs nobody answered; skipped pairs are not shown again unless ``--show-skipped``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from flask import Flask, Response, abort, jsonify, request
+
+from sb3_dipper.common.files import write_atomically
+from sb3_dipper.labelling.queue import ANSWERS, LabelQueue
+from sb3_dipper.labelling.render import SIDES, PairRenderer
+
+# A pair handed to a tab is kept for it this long; after that (a closed tab) another tab may have it.
+CLAIM_SECONDS = 600.0
+
+PAGE = """<!doctype html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>sb3-dipper: which trajectory is better?</title>
+<style>
+  body { font-family: sans-serif; margin: 1.5em; background: #fafafa; }
+  #pair { display: flex; gap: 1.5em; align-items: flex-start; }
+  .side { background: white; padding: .5em; border: 1px solid #ccc; border-radius: 6px; text-align: center; }
+  .side img { max-width: 100%; }
+  #buttons { margin: 1em 0; display: flex; gap: .8em; }
+  button { font-size: 1.1em; padding: .5em 1.2em; cursor: pointer; }
+  #counts { color: #444; }
+  #message { color: #a00; min-height: 1.2em; }
+</style>
+</head>
+<body>
+<h2>Which trajectory gets to the goal better?</h2>
+<p id="counts">labelled <b id="labelled">0</b> &middot; waiting <b id="waiting">0</b>
+  &middot; pair <span id="pair-id">-</span></p>
+<div id="pair">
+  <div class="side"><div>Left</div><img id="left-img" alt="left trajectory"></div>
+  <div class="side"><div>Right</div><img id="right-img" alt="right trajectory"></div>
+</div>
+<div id="buttons">
+  <button id="btn-left" data-answer="left">&larr; Left is better (a)</button>
+  <button id="btn-equal" data-answer="equal">Equal (&darr; / e)</button>
+  <button id="btn-right" data-answer="right">Right is better &rarr; (d)</button>
+  <button id="btn-skip" data-answer="skip">Skip (s)</button>
+</div>
+<p id="message"></p>
+<script>
+let client = sessionStorage.getItem("client");
+if (!client) {
+  client = Math.random().toString(36).slice(2) + Date.now().toString(36);
+  sessionStorage.setItem("client", client);
+}
+let current = null;
+let busy = false;
+function show(counts) {
+  document.getElementById("labelled").textContent = counts.labelled;
+  document.getElementById("waiting").textContent = counts.waiting;
+}
+async function next() {
+  const response = await fetch("api/next?client=" + encodeURIComponent(client));
+  const data = await response.json();
+  show(data.counts);
+  current = data.pair_id;
+  document.getElementById("pair-id").textContent = current === null ? "-" : current;
+  for (const side of ["left", "right"]) {
+    const image = document.getElementById(side + "-img");
+    if (current === null) { image.removeAttribute("src"); } else { image.src = "api/pair/" + current + "/" + side + ".png"; }
+  }
+  document.getElementById("message").textContent =
+    current === null ? "Nothing to label now: new pairs appear as training queues them." : "";
+  if (current === null) { setTimeout(next, 3000); }
+}
+async function answer(choice) {
+  if (current === null || busy) { return; }
+  busy = true;
+  const response = await fetch("api/label", {method: "POST", headers: {"Content-Type": "application/json"},
+    body: JSON.stringify({pair_id: current, client: client, answer: choice})});
+  const data = await response.json();
+  if (!response.ok) { document.getElementById("message").textContent = data.error; }
+  busy = false;
+  await next();
+}
+for (const button of document.querySelectorAll("#buttons button")) {
+  button.addEventListener("click", () => answer(button.dataset.answer));
+}
+const keys = {ArrowLeft: "left", a: "left", ArrowRight: "right", d: "right", ArrowDown: "equal", e: "equal", s: "skip"};
+document.addEventListener("keydown", (event) => { if (keys[event.key]) { event.preventDefault(); answer(keys[event.key]); } });
+next();
+</script>
+</body>
+</html>
+"""
+
+
+def labels_directory(run: str | Path) -> Path:
+    """The label queue of ``run``: the directory itself, or its ``labels/`` folder."""
+    run = Path(run)
+    for candidate in (run, run / "labels"):
+        if (candidate / "queue.json").exists() or (candidate / "pairs").is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"No label queue in {run} or {run / 'labels'}: pass the directory given to training as "
+        "preference_source='people:DIRECTORY' (it holds queue.json and pairs/), or the folder that holds it as labels/."
+    )
+
+
+class Claims:
+    """Which tab has which pair: a pair goes to one client at a time."""
+
+    def __init__(self) -> None:
+        self._by_pair: dict[int, tuple[str, float]] = {}
+
+    def holder(self, pair_id: int) -> str | None:
+        claim = self._by_pair.get(pair_id)
+        if claim is None or time.monotonic() - claim[1] > CLAIM_SECONDS:
+            return None
+        return claim[0]
+
+    def claim(self, pair_id: int, client: str) -> None:
+        self._by_pair[pair_id] = (client, time.monotonic())
+
+    def release(self, pair_id: int) -> None:
+        self._by_pair.pop(pair_id, None)
+
+
+class LabellingServer:
+    """What the page's requests do, on the label queue ``directory`` (one lock: tabs are served one at a time).
+
+    :param directory: the label queue directory
+    :param show_skipped: show skipped pairs again (a label then replaces the skip)
+    """
+
+    def __init__(self, directory: str | Path, show_skipped: bool = False) -> None:
+        self.queue = LabelQueue(directory)
+        self.show_skipped = show_skipped
+        self.claims = Claims()
+        self.lock = threading.Lock()
+        self._renderer: PairRenderer | None = None
+
+    def waiting(self) -> list[int]:
+        """The pairs to show, oldest first."""
+        if not self.show_skipped:
+            return self.queue.waiting_ids()
+        answers = self.queue.answers().as_dict()
+        return [pair_id for pair_id in self.queue.queued_ids() if math.isnan(answers.get(pair_id, math.nan))]
+
+    def counts(self) -> dict[str, int]:
+        skipped = np.isnan(self.queue.answers().labels)
+        return {"labelled": int((~skipped).sum()), "skipped": int(skipped.sum()), "waiting": len(self.waiting())}
+
+    def next_pair(self, client: str) -> dict[str, Any]:
+        """The pair ``client`` holds, or else the oldest pair no other client holds (then ``client`` holds it)."""
+        with self.lock:
+            ids = self.waiting()
+            held = [pair_id for pair_id in ids if self.claims.holder(pair_id) == client]
+            free = [pair_id for pair_id in ids if self.claims.holder(pair_id) is None]
+            candidates = held or free
+            pair_id = candidates[0] if candidates else None
+            if pair_id is not None:
+                self.claims.claim(pair_id, client)
+            return {"pair_id": pair_id, "counts": self.counts()}
+
+    def answer(self, pair_id: int, client: str, answer: str) -> tuple[dict[str, Any], int]:
+        """Record ``client``'s answer for ``pair_id``: the JSON reply and its HTTP status (409: someone was first)."""
+        with self.lock:
+            holder = self.claims.holder(pair_id)
+            if holder is not None and holder != client:
+                return {"error": f"Pair {pair_id} is being labelled in another tab"}, 409
+            if not self.queue.pair_path(pair_id).exists():
+                return {"error": f"No queued pair {pair_id}"}, 404
+            if not self.queue.record_answer(pair_id, ANSWERS[answer], replace_skip=self.show_skipped):
+                return {"error": f"Pair {pair_id} already has an answer: the first one counts"}, 409
+            self.claims.release(pair_id)
+            return {"ok": True, "counts": self.counts()}, 200
+
+    def image(self, pair_id: int, side: str) -> bytes:
+        """The picture of one side of a pair, rendered on first request and kept in ``images/``."""
+        cached = self.queue.images_dir / f"{pair_id:08d}-{side}.png"
+        if not cached.exists():
+            with self.lock:
+                if self._renderer is None:
+                    self._renderer = PairRenderer(self.queue.read_info())
+                png = self._renderer.render(self.queue.read_pair(pair_id), side)
+            write_atomically(cached, lambda file: file.write(png))
+        return cached.read_bytes()
+
+
+def create_app(directory: str | Path, show_skipped: bool = False) -> Flask:
+    """The labelling page of the label queue ``directory`` (arguments as :class:`LabellingServer`)."""
+    server = LabellingServer(directory, show_skipped)
+    app = Flask("sb3_dipper.labelling")
+
+    @app.get("/")
+    def page() -> Response:
+        return Response(PAGE, mimetype="text/html")
+
+    @app.get("/api/status")
+    def status() -> Response:
+        with server.lock:
+            return jsonify(counts=server.counts())
+
+    @app.get("/api/next")
+    def next_pair() -> Response:
+        client = request.args.get("client", "")
+        if not client:
+            abort(400, "client is required")
+        return jsonify(server.next_pair(client))
+
+    @app.post("/api/label")
+    def label() -> tuple[Response, int]:
+        body: dict[str, Any] = request.get_json(silent=True) or {}
+        pair_id, client, answer = body.get("pair_id"), body.get("client"), body.get("answer")
+        if not isinstance(pair_id, int) or not isinstance(client, str) or answer not in ANSWERS:
+            return jsonify(error=f"Send pair_id (int), client (str) and answer (one of {sorted(ANSWERS)})"), 400
+        reply, status_code = server.answer(pair_id, client, answer)
+        return jsonify(reply), status_code
+
+    @app.get("/api/pair/<int:pair_id>/<side>.png")
+    def image(pair_id: int, side: str) -> Response:
+        if side not in SIDES or not server.queue.pair_path(pair_id).exists():
+            abort(404)
+        return Response(server.image(pair_id, side), mimetype="image/png")
+
+    return app
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``sb3-dipper-label --run DIR [--port N] [--host H] [--show-skipped]``: serve the labelling page."""
+    parser = argparse.ArgumentParser(prog="sb3-dipper-label", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--run", required=True, help="the label queue directory, or a folder holding it as labels/")
+    parser.add_argument("--port", type=int, default=5000, help="the port to serve on (default 5000)")
+    parser.add_argument("--host", default="127.0.0.1", help="the address to serve on (default: this machine only)")
+    parser.add_argument("--show-skipped", action="store_true", help="show skipped pairs again")
+    args = parser.parse_args(argv)
+    try:
+        directory = labels_directory(args.run)
+    except FileNotFoundError as error:
+        parser.error(str(error))
+    app = create_app(directory, args.show_skipped)
+    # Flask's own (werkzeug) server: the page serves one person on this machine, not the public.
+    app.run(host=args.host, port=args.port, threaded=True)
+
+
+if __name__ == "__main__":
+    main()
