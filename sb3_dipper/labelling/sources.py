@@ -124,7 +124,8 @@ class QueuedPreferenceSource(PreferenceSource):
 
     @property
     def pending(self) -> int:
-        return len(self._pending - set(self.queue.answers().pair_ids.tolist()))
+        answered = set(self.queue.answers().pair_ids.tolist())  # first: the first use takes over waiting pairs
+        return len(self._pending - answered)
 
     def label(self, pairs: TrajectoryPairs) -> np.ndarray:
         queue = self.queue

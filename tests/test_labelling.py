@@ -1,0 +1,373 @@
+"""Preferences from people: the label queue, the asynchronous source, NoisyLabeler, the page, and training on late labels."""
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_dipper import DIPPER, PIPER, DPOFlat
+from sb3_dipper.common.preferences import (
+    PreferenceDataset,
+    PrimitiveInTheLoopLabeler,
+    TrajectoryPairs,
+    add_new_labels,
+    pairs_due,
+)
+from sb3_dipper.labelling.app import LabellingServer, create_app
+from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
+from sb3_dipper.labelling.sources import NoisyLabeler, QueuedPreferenceSource, preference_source_from
+from tests.conftest import any_tiny_model, short_maze
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def goal_reached(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(achieved - desired, axis=-1) <= 0.5
+
+
+SCRIPT_LABELER = PrimitiveInTheLoopLabeler(goal_reached)
+
+
+def random_pairs(n_pairs: int, seed: int = 0, length: int = 3) -> TrajectoryPairs:
+    """Pairs whose trajectories wander around a goal at the origin: some reach it, some not."""
+    rng = np.random.default_rng(seed)
+    shape = (2, n_pairs, length, 2)
+    observations = {
+        "observation": rng.normal(size=shape).astype(np.float32),
+        "achieved_goal": rng.normal(size=shape).astype(np.float32),
+        "desired_goal": np.zeros(shape, np.float32),
+    }
+    return TrajectoryPairs(
+        observations=observations,
+        actions=rng.uniform(-1, 1, size=shape).astype(np.float32),
+        reached_actions=rng.uniform(-1, 1, size=shape).astype(np.float32),
+        next_achieved_goals=rng.normal(size=shape).astype(np.float32),
+        mask=np.ones((2, n_pairs, length), bool),
+        labels=np.full(n_pairs, np.nan, np.float32),
+    )
+
+
+def people(directory, **kwargs) -> QueuedPreferenceSource:
+    return preference_source_from(QueuedPreferenceSource(str(directory), **kwargs), SCRIPT_LABELER)
+
+
+# ---------------------------------------------------------------------------------------------------- the source
+
+
+def test_queued_pairs_wait_and_arrive_labelled(tmp_path):
+    source = people(tmp_path)
+    pairs = random_pairs(5)
+    started = time.monotonic()
+    labels = source.label(pairs)
+    assert time.monotonic() - started < 1.0  # queuing, not waiting for a person
+    assert np.isnan(labels).all() and source.pending == 5 and source.collect() is None
+
+    dataset = PreferenceDataset(10)
+    add_new_labels(dataset, source, TrajectoryPairs(**{**pairs.__dict__, "labels": labels}))
+    assert len(dataset) == 0  # waiting pairs are not trained on
+
+    queue = LabelQueue(tmp_path)
+    assert queue.waiting_ids() == [0, 1, 2, 3, 4]
+    for pair_id, label in [(3, 1.0), (0, 0.0), (1, float("nan"))]:
+        assert queue.record_answer(pair_id, label)
+    add_new_labels(dataset, source, None)
+    stored = dataset.all_pairs()
+    assert len(dataset) == 2 and stored.labels.tolist() == [0.0, 1.0]  # skipped pair 1 is dropped
+    np.testing.assert_array_equal(stored.next_achieved_goals, pairs.next_achieved_goals[:, [0, 3]])
+    np.testing.assert_array_equal(stored.observations["observation"], pairs.observations["observation"][:, [0, 3]])
+    assert source.pending == 2 and source.collect() is None  # each label is handed over once
+    record = queue.read_handed()
+    assert record["pair_id"].tolist() == [0, 3] and (record["labeller"] == PERSON).all()
+
+
+def test_pending_pairs_count_against_the_label_budget(tmp_path):
+    dataset = PreferenceDataset(10)
+    assert pairs_due(dataset, 10, 100, 100) == 10
+    assert pairs_due(dataset, 10, 100, 100, pending=7) == 3
+    assert pairs_due(dataset, 10, 100, 100, pending=10) == 0
+
+    # The source's own budget: the most pairs ever queued for people in its directory, across sources.
+    source = QueuedPreferenceSource(str(tmp_path), budget=3)  # no script: pairs beyond the budget get no label
+    assert np.isnan(source.label(random_pairs(2))).all()
+    labels = people(tmp_path, budget=3).label(random_pairs(4, seed=1))
+    assert LabelQueue(tmp_path).queued_ids() == [0, 1, 2]  # one more fitted the budget
+    assert np.isnan(labels[0]) and np.array_equal(labels[1:], SCRIPT_LABELER.label(random_pairs(4, seed=1))[1:])
+
+
+def test_mixed_mode_records_who_labelled_each_pair(tmp_path):
+    pairs = random_pairs(40)
+    source = people(tmp_path, person_fraction=0.25, seed=3)
+    labels = source.label(pairs)
+    queued = np.isnan(labels)
+    assert 3 <= queued.sum() <= 20 and source.pending == queued.sum()
+    np.testing.assert_array_equal(labels[~queued], SCRIPT_LABELER.label(pairs)[~queued])
+
+    queue = LabelQueue(tmp_path)
+    for pair_id in queue.waiting_ids():
+        queue.record_answer(pair_id, 0.5)
+    assert len(source.collect()) == queued.sum()
+    record = queue.read_handed()
+    labeller = dict(zip(record["pair_id"].tolist(), record["labeller"].tolist(), strict=True))
+    assert sorted(labeller) == list(range(40))
+    assert [labeller[pair_id] for pair_id in range(40)] == [PERSON if q else SCRIPT for q in queued]
+
+    # A predicate instead of a share: pairs whose first trajectory starts left of the goal go to people.
+    left = lambda batch: batch.observations["achieved_goal"][0, :, 0, 0] < 0  # noqa: E731
+    chosen = people(tmp_path / "predicate", to_person=left).label(pairs)
+    np.testing.assert_array_equal(np.isnan(chosen), left(pairs))
+
+
+def test_label_file_from_a_killed_writer_is_old_or_new(tmp_path):
+    """A writer killed at any moment leaves labels.npz whole: the answers it had recorded, maybe one fewer."""
+    queue = LabelQueue(tmp_path)
+    for kill in range(4):
+        child = os.fork()
+        if child == 0:  # the writer: records answers until it is killed
+            try:
+                writer = LabelQueue(tmp_path)
+                for pair_id in range(100000):
+                    writer.record_answer(pair_id, float(pair_id % 2))
+            finally:
+                os._exit(0)
+        time.sleep(0.15 + 0.05 * kill)
+        os.kill(child, signal.SIGKILL)
+        os.waitpid(child, 0)
+        answers = queue.answers()  # reads whole, or raises
+        ids = answers.pair_ids.tolist()
+        assert ids == list(range(len(ids))) and len(ids) > 0
+        np.testing.assert_array_equal(answers.labels, np.arange(len(ids)) % 2)
+        queue.labels_path.unlink()
+
+
+def test_a_restarted_source_and_page_resume(tmp_path):
+    first = people(tmp_path)
+    first.label(random_pairs(4))
+    queue = LabelQueue(tmp_path)
+    queue.record_answer(1, 1.0)
+    queue.record_answer(2, float("nan"))
+
+    # A new training process adopts the waiting pairs, gets the label given meanwhile, and uses fresh ids.
+    second = people(tmp_path)
+    assert second.pending == 2
+    assert second.collect().labels.tolist() == [1.0]
+    second.label(random_pairs(1))
+    assert queue.queued_ids() == [0, 1, 2, 3, 4]
+
+    # A restarted page goes on with the unanswered pairs; a skipped pair comes back only when asked.
+    assert LabellingServer(tmp_path).next_pair("tab")["pair_id"] == 0
+    assert LabellingServer(tmp_path).waiting() == [0, 3, 4]
+    again = LabellingServer(tmp_path, show_skipped=True)
+    assert again.waiting() == [0, 2, 3, 4]
+    again.next_pair("tab")
+    assert again.answer(2, "tab", "left")[1] == 200
+    assert queue.answers().as_dict()[2] == 1.0
+
+
+def test_two_tabs_never_label_one_pair_twice(tmp_path):
+    people(tmp_path).label(random_pairs(3))
+    client = create_app(tmp_path).test_client()
+    first = client.get("/api/next?client=a").get_json()["pair_id"]
+    second = client.get("/api/next?client=b").get_json()["pair_id"]
+    assert first == 0 and second == 1  # each tab gets its own pair
+    assert client.get("/api/next?client=a").get_json()["pair_id"] == 0  # a reload keeps the tab's pair
+    assert client.post("/api/label", json={"pair_id": 0, "client": "b", "answer": "right"}).status_code == 409
+    assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "left"}).status_code == 200
+    assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "right"}).status_code == 409
+    assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "maybe"}).status_code == 400
+
+    # Answers racing for one pair from threads (several page processes even): exactly one is recorded.
+    queue = LabelQueue(tmp_path)
+    results: list[bool] = []
+    threads = [threading.Thread(target=lambda: results.append(LabelQueue(tmp_path).record_answer(2, 0.0))) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(results) == [False] * 7 + [True]
+    assert queue.answers().pair_ids.tolist() == [0, 2]
+
+
+# ---------------------------------------------------------------------------------------------------- NoisyLabeler
+
+
+def test_noisy_labeler_flips_at_its_rate_and_breaks_ties_at_random():
+    pairs = random_pairs(20000, seed=5, length=2)
+    scripted = SCRIPT_LABELER.label(pairs)
+    strict, ties = scripted != 0.5, scripted == 0.5
+    assert strict.sum() > 2000 and ties.sum() > 2000
+    labels = NoisyLabeler(0.2, seed=0, script=SCRIPT_LABELER).label(pairs)
+    assert set(np.unique(labels).tolist()) == {0.0, 1.0}
+    flips = np.mean(labels[strict] != scripted[strict])
+    assert abs(flips - 0.2) < 0.015, flips
+    assert abs(np.mean(labels[ties]) - 0.5) < 0.03
+    np.testing.assert_array_equal(labels, NoisyLabeler(0.2, seed=0, script=SCRIPT_LABELER).label(pairs))
+    np.testing.assert_array_equal(NoisyLabeler(0.0, script=SCRIPT_LABELER).label(pairs)[strict], scripted[strict])
+    with pytest.raises(ValueError, match=r"noise must be a probability in \[0, 0.5\]"):
+        NoisyLabeler(0.7)
+
+
+@pytest.mark.parametrize(
+    "spec, kind",
+    [(None, PrimitiveInTheLoopLabeler), ("primitive", PrimitiveInTheLoopLabeler), ("noisy:0.1", NoisyLabeler),
+     ("noisy:0.1:4", NoisyLabeler), (dict(kind="noisy", noise=0.3), NoisyLabeler), ("people:{dir}", QueuedPreferenceSource),
+     ("mixed:{dir}:0.3", QueuedPreferenceSource), (dict(kind="people", directory="{dir}", budget=5), QueuedPreferenceSource)],
+)  # fmt: skip
+def test_preference_source_specs(tmp_path, spec, kind):
+    if isinstance(spec, str):
+        spec = spec.replace("{dir}", str(tmp_path))
+    elif isinstance(spec, dict):
+        spec = {key: value.replace("{dir}", str(tmp_path)) if isinstance(value, str) else value for key, value in spec.items()}
+    source = preference_source_from(spec, SCRIPT_LABELER, seed=1)
+    assert type(source) is kind
+    if kind is not PrimitiveInTheLoopLabeler:
+        assert source.script is SCRIPT_LABELER
+
+
+@pytest.mark.parametrize("spec", ["noisy", "noisy:lots", "people", "crowd:x", dict(kind="noisy", level=1), 3])
+def test_bad_preference_source_names_the_parameter(spec):
+    with pytest.raises(ValueError, match="preference_source"):
+        preference_source_from(spec, SCRIPT_LABELER)
+
+
+# ---------------------------------------------------------------------------------------------------- training
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
+def test_algorithms_train_on_labels_that_arrive_late(tmp_path, model_class):
+    env = short_maze()
+    model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path}", n_preference_pairs=4)
+    model.learn(120)
+    assert len(model.preferences) == 0 and model._labeler.pending == 4 and model._n_updates == 0
+    assert isinstance(model.preference_source, str)  # the configured source; the live one is not saved
+    queue = LabelQueue(tmp_path)
+    given = {pair_id: label for pair_id, label in zip(queue.waiting_ids(), [1.0, 0.0, 0.5, np.nan], strict=True)}
+    for pair_id, label in given.items():
+        queue.record_answer(pair_id, label)
+
+    model.learn(60, reset_num_timesteps=False)
+    labelled = [pair_id for pair_id, label in given.items() if not np.isnan(label)]
+    assert model.preferences.all_pairs().labels.tolist() == [given[pair_id] for pair_id in labelled]
+    np.testing.assert_array_equal(
+        model.preferences.all_pairs().next_achieved_goals,
+        np.concatenate([queue.read_pair(pair_id).next_achieved_goals for pair_id in labelled], axis=1),
+    )
+    assert model._n_updates > 0
+    model.save(tmp_path / "model.zip")
+    env.close()
+
+
+def test_noise_is_chosen_from_the_constructor(maze_env):
+    model = any_tiny_model(DIPPER, maze_env, preference_source="noisy:0.25")
+    assert isinstance(model._labeler, NoisyLabeler) and model._labeler.noise == 0.25
+    assert isinstance(model._labeler.script, PrimitiveInTheLoopLabeler)
+
+
+# ---------------------------------------------------------------------------------------------------- the page
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture
+def chromium():
+    webdriver = pytest.importorskip("selenium.webdriver")
+    binary, driver = shutil.which("chromium"), shutil.which("chromedriver")
+    if binary is None or driver is None:
+        pytest.fail("The browser test needs chromium and chromium-driver: `make test` installs them (apt-get)")
+    options = webdriver.ChromeOptions()
+    options.binary_location = binary
+    for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1100,800"):
+        options.add_argument(argument)
+    browser = webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
+    yield browser
+    browser.quit()
+
+
+@pytest.fixture
+def page(tmp_path):
+    """A tiny DIPPER run's queue of four pairs, and the labelling page serving it (the console script's code)."""
+    model = any_tiny_model(DIPPER, short_maze(), preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
+    model.learn(120)
+    assert model._labeler.pending == 4
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "sb3_dipper.labelling.app", "--run", str(tmp_path), "--port", str(port)],
+        env={**os.environ, "MUJOCO_GL": "egl"},
+        stderr=subprocess.DEVNULL,
+    )
+    url = f"http://127.0.0.1:{port}/"
+    for _ in range(300):
+        try:
+            urllib.request.urlopen(url + "api/status", timeout=1)
+            break
+        except OSError:
+            time.sleep(0.1)
+    yield url, model, tmp_path / "labels"
+    server.terminate()
+    server.wait(timeout=10)
+
+
+def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    url, model, directory = page
+    chromium.get(url)
+    wait = WebDriverWait(chromium, 20)
+
+    def shown_pair() -> int:
+        wait.until(lambda browser: browser.find_element(By.ID, "pair-id").text not in ("", "-"))
+        loaded = "return arguments[0].complete && arguments[0].naturalWidth"
+        for side in ("left", "right"):
+            image = chromium.find_element(By.ID, f"{side}-img")
+            wait.until(lambda _, image=image: chromium.execute_script(loaded, image))
+        return int(chromium.find_element(By.ID, "pair-id").text)
+
+    answers = {}
+    first = shown_pair()
+    if os.environ.get("SB3_DIPPER_SCREENSHOT"):  # docs/labelling.png is made this way
+        chromium.save_screenshot(os.environ["SB3_DIPPER_SCREENSHOT"])
+    chromium.find_element(By.ID, "btn-left").click()
+    answers[first] = 1.0
+    second = wait.until(lambda _: shown_pair() != first and shown_pair())
+    chromium.find_element(By.TAG_NAME, "body").send_keys("d")  # the keyboard: right is better
+    answers[second] = 0.0
+    third = wait.until(lambda _: shown_pair() not in answers and shown_pair())
+    chromium.find_element(By.ID, "btn-equal").click()
+    answers[third] = 0.5
+    fourth = wait.until(lambda _: shown_pair() not in answers and shown_pair())
+    chromium.find_element(By.ID, "btn-skip").click()
+    wait.until(lambda browser: browser.find_element(By.ID, "pair-id").text == "-")
+    assert chromium.find_element(By.ID, "labelled").text == "3" and chromium.find_element(By.ID, "waiting").text == "0"
+
+    recorded = LabelQueue(directory).answers().as_dict()
+    assert sorted(recorded) == sorted([first, second, third, fourth]) and np.isnan(recorded[fourth])
+    assert {pair_id: recorded[pair_id] for pair_id in answers} == answers
+    assert json.loads((directory / "queue.json").read_text())["env_id"] == "PointMazeFourRooms-v0"
+
+    # The model, trained on after the labels arrived, holds exactly those pairs and ran DPO updates on them.
+    actor = [parameter.detach().clone() for parameter in model.policy.actor.parameters()]
+    assert model._n_updates == 0
+    model.learn(60, reset_num_timesteps=False)
+    labelled = sorted(answers)
+    assert model.preferences.all_pairs().labels.tolist() == [answers[pair_id] for pair_id in labelled]
+    np.testing.assert_array_equal(
+        model.preferences.all_pairs().observations["achieved_goal"],
+        np.concatenate([LabelQueue(directory).read_pair(i).observations["achieved_goal"] for i in labelled], axis=1),
+    )
+    assert model._n_updates > 0
+    assert any(not th.equal(before, after) for before, after in zip(actor, model.policy.actor.parameters(), strict=True))
