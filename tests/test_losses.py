@@ -7,6 +7,7 @@ import torch as th
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 
 from sb3_dipper.common.losses import (
+    at_real_steps,
     dipper_logits,
     dipper_loss,
     preference_loss,
@@ -119,3 +120,34 @@ def test_preferred_nll_uses_the_preferred_side_and_skips_ties():
     # Pair 0: tau^1 mean -2; pair 1: tau^2, one real step, -4; pair 2 (tie) is skipped. NLL = (2 + 4) / 2 = 3.
     assert preferred_nll(log_probs, mask, labels).item() == pytest.approx(3.0)
     assert preferred_nll(log_probs, mask, th.full((3,), 0.5)).item() == 0.0
+
+
+def test_real_step_values_go_back_to_their_steps_with_zero_padding():
+    mask = th.tensor([[[True, False, True]], [[False, True, False]]])
+    placed = at_real_steps(th.tensor([1.0, 2.0, 3.0]), mask)
+    assert placed.tolist() == [[[1.0, 0.0, 2.0]], [[0.0, 3.0, 0.0]]]
+    with pytest.raises(ValueError, match=r"one entry per real step of the mask \(3\)"):
+        at_real_steps(th.zeros(6), mask)
+
+
+def test_losses_on_real_steps_only_equal_losses_on_the_padded_batch():
+    """Evaluating log-probabilities and value gaps at the real steps only (padding left at 0) changes neither the DIPPER
+    loss, nor the preferred-side NLL, nor their gradients: every per-step term is masked."""
+    generator = th.Generator().manual_seed(0)
+    mask = th.rand(2, 5, 4, generator=generator) < 0.4
+    mask[:, :, 0] = True
+    labels = th.tensor([1.0, 0.0, 0.5, 1.0, 0.0])
+    weights = th.randn(2, 5, 4, generator=generator)
+    gaps = th.randn(2, 5, 4, generator=generator)
+
+    def total_loss(log_probs: th.Tensor, value_gaps: th.Tensor) -> th.Tensor:
+        dpo, _ = dipper_loss(log_probs, mask, labels, beta=0.1, value_gaps=value_gaps, value_reg_coef=0.1)
+        return dpo + preferred_nll(log_probs, mask, labels)
+
+    parameters = th.zeros((), requires_grad=True)
+    padded = total_loss(weights * parameters.exp() - 1.0, gaps)
+    (padded_gradient,) = th.autograd.grad(padded, parameters)
+    real = total_loss(at_real_steps((weights * parameters.exp() - 1.0)[mask], mask), at_real_steps(gaps[mask], mask))
+    (real_gradient,) = th.autograd.grad(real, parameters)
+    assert real.item() == pytest.approx(padded.item(), abs=1e-6)
+    assert real_gradient.item() == pytest.approx(padded_gradient.item(), abs=1e-6)

@@ -2,6 +2,7 @@
 
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
     python zoo_scripts/benchmark.py profiles --write                # steps/s at the paper tasks' CPU profiles
+    python zoo_scripts/benchmark.py updates                         # ms per lower/higher update vs SB3's SAC update
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
     python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set "planning='off'" --name ablations
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick            # every algorithm, <= 1 h
@@ -267,6 +268,58 @@ def run_profiles(args: argparse.Namespace) -> None:
     print(body)
 
 
+# ------------------------------------------------------------------------------------------------------------- updates
+
+
+def update_steps(model: Any) -> dict[str, Any]:
+    """One update of each kind on a trained DIPPER: SB3's own ``SAC.train`` on the lower SAC (same networks, buffer and
+    batch), the lower level's DemoSAC step (behaviour cloning, clipped targets) and DIPPER's higher-level update."""
+    from stable_baselines3 import SAC
+
+    lower, batch_size = model.lower, model.batch_size
+    return {
+        "SB3 SAC.train, 1 gradient step": lambda: SAC.train(lower, 1, batch_size),
+        "DemoSAC.train, 1 gradient step": lambda: lower.train(1, batch_size),
+        "DIPPER higher-level update": model._train_high_level,
+    }
+
+
+def run_updates(args: argparse.Namespace) -> None:
+    """Milliseconds per training update at a task's DIPPER CPU profile, and their ratios to SB3's SAC update.
+
+    The model trains ``learning_starts + --warmup`` primitive steps first (filled buffers, labelled pairs); then each
+    kind of update runs ``--updates`` times per round, the kinds in a new random order every round, all in this one
+    process, so the ratios share the machine's state (the absolute times do not travel).
+    """
+    th.set_num_threads(torch_threads())
+    model = make_model("dipper", args.env, seed=0)[0]
+    model.learn(int(getattr(model, "learning_starts", 0)) + args.warmup)
+    steps = update_steps(model)
+    seconds: dict[str, list[float]] = {name: [] for name in steps}
+    order = list(steps)
+    for _ in range(args.repeats):
+        random.shuffle(order)
+        for name in order:
+            start = time.perf_counter()
+            for _ in range(args.updates):
+                steps[name]()
+            seconds[name].append((time.perf_counter() - start) / args.updates)
+    per_update = {name: statistics.median(values) for name, values in seconds.items()}
+    baseline = per_update["SB3 SAC.train, 1 gradient step"]
+    rows = [f"| {name} | {value * 1e3:.2f} | {value / baseline:.2f} |" for name, value in per_update.items()]
+    print(
+        f"Milliseconds per update at `{args.env}`'s DIPPER CPU profile (`hyperparams/dipper.yml`), one torch thread, "
+        f"median of {args.repeats} interleaved rounds of {args.updates} updates after {args.warmup:,} training steps "
+        "past `learning_starts`, measured in one process.\n\n"
+        "| update | ms per update | ratio to SB3 SAC |\n|---|---|---|\n" + "\n".join(rows)
+    )
+
+
+# ------------------------------------------------------------------------------------------------------------- learning
+
+
+DEFAULT_VARIANT = "default"  # the folder of the runs without --variant
+RESULT = "result.json"
 # ------------------------------------------------------------------------------------------------------------- learning
 
 
@@ -566,6 +619,11 @@ def main() -> None:
     profiles.add_argument("--repeats", type=int, default=3)
     profiles.add_argument("--name", default="profiles")
     profiles.add_argument("--write", action="store_true", help="write the section of BENCHMARKS.md and the CSV")
+    updates = commands.add_parser("updates", help="ms per lower and higher training update, vs SB3's SAC update")
+    updates.add_argument("--env", default="FetchPickAndPlaceFixed-v0")
+    updates.add_argument("--warmup", type=int, default=3000, help="primitive steps trained past learning_starts first")
+    updates.add_argument("--updates", type=int, default=20, help="updates of each kind per round")
+    updates.add_argument("--repeats", type=int, default=7, help="interleaved rounds; the median counts")
     learning = commands.add_parser("learning", help="success curves of algorithms x tasks x seeds")
     learning.add_argument("--protocol", choices=sorted(PROTOCOLS), help="preset algorithms, tasks, seeds and budgets")
     # Defaults (None) come from the protocol, then from LEARNING_DEFAULTS; see resolve_protocol.
@@ -598,7 +656,8 @@ def main() -> None:
             learning.error("--benchmarks-md and --figures-dir say where --write writes: add --write, or leave them out")
         if args.variant == DEFAULT_VARIANT:
             learning.error(f"--variant {DEFAULT_VARIANT} names the folder of the runs without a variant: choose another")
-    {"throughput": run_throughput, "profiles": run_profiles, "learning": run_learning}[args.command](args)
+    commands_run = {"throughput": run_throughput, "profiles": run_profiles, "updates": run_updates, "learning": run_learning}
+    commands_run[args.command](args)
 
 
 if __name__ == "__main__":

@@ -122,23 +122,19 @@ class DemoSAC(SAC):
             optimizers.append(self.ent_coef_optimizer)
         self._update_learning_rate(optimizers)
         n_demo = max(1, round(self.demo_share * batch_size)) if self.demonstrations is not None else 0
-        logs: dict[str, list[float]] = {
-            "actor_loss": [],
-            "critic_loss": [],
-            "ent_coef": [],
-            "bc_loss": [],
-            "q_filter_kept": [],
-        }
+        bounds = self.target_q_bounds or (-np.inf, np.inf)
+        # Per-step values stay tensors until the end: one conversion per logged key instead of one per gradient step.
+        log_keys = ("actor_loss", "critic_loss", "ent_coef", "bc_loss", "q_filter_kept")
+        logs: dict[str, list[th.Tensor]] = {key: [] for key in log_keys}
         for _ in range(gradient_steps):
             batch = self._mixed_batch(batch_size - n_demo, n_demo)
-            is_demo = th.zeros(batch_size, dtype=th.bool, device=self.device)
-            is_demo[batch_size - n_demo :] = True
 
-            # Entropy coefficient (as SAC).
-            actions_pi, log_prob = self.actor.action_log_prob(batch.observations)
+            # One actor pass: SAC's reparameterised actions and, for cloning, the deterministic actions (the mode).
+            mean_actions, log_std, dist_kwargs = self.actor.get_action_dist_params(batch.observations)
+            actions_pi, log_prob = self.actor.action_dist.log_prob_from_params(mean_actions, log_std, **dist_kwargs)
+            deterministic_actions = self.actor.action_dist.mode()
             log_prob = log_prob.reshape(-1, 1)
             ent_coef = step_entropy_coefficient(self, log_prob)
-            logs["ent_coef"].append(ent_coef.item())
 
             # Critic: soft Bellman targets on replay and demo transitions alike.
             with th.no_grad():
@@ -146,7 +142,6 @@ class DemoSAC(SAC):
                 next_q = (
                     th.cat(self.critic_target(batch.next_observations, next_actions), dim=1).min(dim=1, keepdim=True).values
                 )
-                bounds = self.target_q_bounds or (-np.inf, np.inf)
                 target_q = clipped_soft_target(
                     batch.rewards, batch.dones, next_q, next_log_prob.reshape(-1, 1), ent_coef, self.gamma, bounds
                 )
@@ -155,29 +150,63 @@ class DemoSAC(SAC):
             self.critic.optimizer.zero_grad()
             critic_loss.backward()  # type: ignore[union-attr]
             self.critic.optimizer.step()
-            logs["critic_loss"].append(critic_loss.item())  # type: ignore[union-attr]
 
-            # Actor: SAC's loss, scaled, plus the Q-filtered behaviour-cloning sum over demo steps.
-            min_q_pi = th.cat(self.critic(batch.observations, actions_pi), dim=1).min(dim=1, keepdim=True).values
-            sac_loss = (ent_coef * log_prob - min_q_pi).mean()
-            if n_demo > 0:
-                bc_loss, kept = self._cloning_loss(batch, is_demo)
-                actor_loss = self.rl_coef * sac_loss + self.bc_coef * bc_loss
-            else:  # SAC's own actor loss, with the clipped critic
-                bc_loss, kept, actor_loss = th.zeros(()), 0.0, sac_loss
-            self.actor.optimizer.zero_grad()
-            actor_loss.backward()
+            # The actor loss needs the critic's gradient with respect to actions only: with the Q-networks frozen, their
+            # weight gradients (which the next critic update would discard) are not computed.
+            self._set_q_networks_trainable(False)
+            try:
+                actor_loss, bc_loss, kept = self._actor_loss(
+                    batch, n_demo, actions_pi, log_prob, deterministic_actions, ent_coef
+                )
+                self.actor.optimizer.zero_grad()
+                actor_loss.backward()
+            finally:
+                self._set_q_networks_trainable(True)
             self.actor.optimizer.step()
-            logs["actor_loss"].append(actor_loss.item())
-            logs["bc_loss"].append(bc_loss.item())
-            logs["q_filter_kept"].append(kept)
+            for key, value in zip(log_keys, (actor_loss, critic_loss, ent_coef, bc_loss, kept), strict=True):
+                logs[key].append(value.detach())  # type: ignore[union-attr]
 
             if self._n_updates % self.target_update_interval == 0:
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
             self._n_updates += 1
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
-            self.logger.record(f"train/{key}", float(np.mean(values)))
+            self.logger.record(f"train/{key}", th.stack(values).float().mean().item())
+
+    def _set_q_networks_trainable(self, trainable: bool) -> None:
+        """Switch ``requires_grad`` of the critic's Q-networks (not of a features extractor it may share with the actor)."""
+        for q_network in self.critic.q_networks:
+            q_network.requires_grad_(trainable)
+
+    def _actor_loss(
+        self,
+        batch: DictReplayBufferSamples,
+        n_demo: int,
+        actions_pi: th.Tensor,
+        log_prob: th.Tensor,
+        deterministic_actions: th.Tensor,
+        ent_coef: th.Tensor,
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """``(actor loss, behaviour-cloning sum, kept share of demo steps)``: SAC's actor loss, scaled, plus the
+        Q-filtered cloning sum over the batch's last ``n_demo`` rows (the demo steps).
+
+        :param actions_pi: reparameterised actions of the current actor on ``batch.observations``, and ``log_prob``
+            their log-probabilities ``(N, 1)``
+        :param deterministic_actions: the current actor's deterministic actions on ``batch.observations``
+        """
+        min_q_pi = th.cat(self.critic(batch.observations, actions_pi), dim=1).min(dim=1, keepdim=True).values
+        sac_loss = (ent_coef * log_prob - min_q_pi).mean()
+        if n_demo == 0:  # SAC's own actor loss, with the clipped critic
+            return sac_loss, sac_loss.new_zeros(()), sac_loss.new_zeros(())
+        demo_obs = {key: value[-n_demo:] for key, value in batch.observations.items()}
+        demo_actions, policy_actions = batch.actions[-n_demo:], deterministic_actions[-n_demo:]
+        keep = (
+            q_filter_mask(self.critic, demo_obs, demo_actions, policy_actions)
+            if self.q_filter
+            else th.ones_like(demo_actions[:, 0])
+        )
+        bc_loss = behaviour_cloning_loss(policy_actions, demo_actions, keep)
+        return self.rl_coef * sac_loss + self.bc_coef * bc_loss, bc_loss, keep.mean()
 
     def _mixed_batch(self, n_replay: int, n_demo: int) -> DictReplayBufferSamples:
         """Replay transitions followed by ``n_demo`` demo transitions, normalised alike."""
@@ -202,27 +231,18 @@ class DemoSAC(SAC):
             rewards=th.cat((replay.rewards, th.as_tensor(rewards, device=self.device).reshape(-1, 1))),
         )
 
-    def _cloning_loss(self, batch: DictReplayBufferSamples, is_demo: th.Tensor) -> tuple[th.Tensor, float]:
-        """Sum of squared errors between the deterministic action and the demo action, over Q-filtered demo steps."""
-        demo_obs = {key: value[is_demo] for key, value in batch.observations.items()}
-        demo_actions = batch.actions[is_demo]
-        policy_actions = self.actor(demo_obs, deterministic=True)
-        keep = (
-            q_filter_mask(self.critic, demo_obs, demo_actions, policy_actions)
-            if self.q_filter
-            else th.ones_like(demo_actions[:, 0])
-        )
-        return behaviour_cloning_loss(policy_actions, demo_actions, keep), float(keep.mean())
-
 
 def q_filter_mask(
     critic: ContinuousCritic, observations: dict[str, th.Tensor], demo_actions: th.Tensor, policy_actions: th.Tensor
 ) -> th.Tensor:
-    """1 where the first critic values the demonstrated action strictly above the policy's action, else 0 (no gradient)."""
+    """1 where the first critic values the demonstrated action strictly above the policy's action, else 0 (no gradient).
+
+    Both actions go through the critic in one pass over the observations stacked twice.
+    """
     with th.no_grad():
-        demo_values = critic.q1_forward(observations, demo_actions)  # type: ignore[arg-type]
-        policy_values = critic.q1_forward(observations, policy_actions)  # type: ignore[arg-type]
-        return (demo_values > policy_values).float().reshape(-1)
+        doubled = {key: th.cat((value, value)) for key, value in observations.items()}
+        values = critic.q1_forward(doubled, th.cat((demo_actions, policy_actions))).reshape(2, -1)  # type: ignore[arg-type]
+        return (values[0] > values[1]).float()
 
 
 def behaviour_cloning_loss(policy_actions: th.Tensor, demo_actions: th.Tensor, keep: th.Tensor) -> th.Tensor:

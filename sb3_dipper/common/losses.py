@@ -64,6 +64,21 @@ def dipper_logits(
     return implicit_rewards[0] - implicit_rewards[1]
 
 
+def at_real_steps(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
+    """Per-step values computed at the real steps only, put in ``mask``'s shape with 0 at the padding.
+
+    Every per-step term of the losses here is multiplied by the mask, so evaluating the networks on the real steps
+    alone gives the same losses and gradients at a fraction of the cost when trajectories are padded.
+
+    :param values: ``(n_real,)`` values, in the row-major order of ``mask``'s true entries (``x[mask]``'s order)
+    :param mask: boolean ``(2, B, T)`` real steps
+    """
+    n_real = int(mask.sum())
+    if values.shape != (n_real,):
+        raise ValueError(f"values must have one entry per real step of the mask ({n_real}), got shape {tuple(values.shape)}")
+    return values.new_zeros(mask.shape).masked_scatter(mask, values)
+
+
 def preference_loss(logits: th.Tensor, labels: th.Tensor) -> th.Tensor:
     """``-[y log sigma(z) + (1 - y) log sigma(-z)]``, averaged over pairs (Bradley-Terry with soft labels)."""
     return F.binary_cross_entropy_with_logits(logits, labels.to(logits.dtype))

@@ -18,7 +18,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
-from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
+from sb3_dipper.common.losses import at_real_steps, dipper_loss, preferred_nll, uniform_log_prob
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
 from sb3_dipper.common.planning import SubgoalGraph
@@ -373,6 +373,10 @@ class DIPPER(HierarchicalAlgorithm):
         self._label_new_pairs()
         if len(self.preferences) == 0:
             return
+        self._train_high_level()
+
+    def _train_high_level(self) -> None:
+        """``high_gradient_steps`` DIPPER updates of the higher policy on sampled labelled pairs."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.actor.optimizer)
         dpo_losses, nll_losses, accuracies, value_gaps = [], [], [], []
@@ -380,9 +384,10 @@ class DIPPER(HierarchicalAlgorithm):
             pairs = self.preferences.sample(self.pairs_per_batch, self._rng)
             observations, actions, mask, labels = self._pair_tensors(pairs)
 
-            # Eq. 9: log pi^H of every stored higher-level action, minus lambda * (V^L - V^L_m) per step.
-            log_probs = self.policy.log_prob(observations, actions.reshape(-1, actions.shape[-1])).reshape(mask.shape)
-            gaps = self._value_gaps(pairs) if self.value_reg == "paper" and self.value_reg_coef != 0.0 else None
+            # Eq. 9: log pi^H of every stored higher-level action, minus lambda * (V^L - V^L_m) per step. Every term is
+            # masked, so the networks see only the real steps (on pick-and-place about a fifth of the padded (2, B, T) batch).
+            log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
+            gaps = self._value_gaps(pairs, mask) if self.value_reg == "paper" and self.value_reg_coef != 0.0 else None
             dpo, logits = dipper_loss(log_probs, mask, labels, self.beta, self._reference_log_prob, gaps, self.value_reg_coef)
             loss = dpo
 
@@ -439,28 +444,39 @@ class DIPPER(HierarchicalAlgorithm):
         return pairs.reached_actions if self.hindsight_actions else pairs.actions
 
     def _pair_tensors(self, pairs: TrajectoryPairs) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, th.Tensor]:
-        """Flattened (normalised) observations of both trajectories, their actions, mask and labels as tensors."""
-        flat_obs = flat_pair_observations(pairs)
+        """(Normalised) observations and actions of the real steps of both trajectories, one row per step in the order
+        of ``pairs.mask``'s true entries; the mask ``(2, B, T)`` and labels as tensors."""
+        real_steps = pairs.mask.reshape(-1)
+        flat_obs = {key: value[real_steps] for key, value in flat_pair_observations(pairs).items()}
         if self._vec_normalize_env is not None:
             flat_obs = self._vec_normalize_env.normalize_obs(flat_obs)  # type: ignore[assignment]
         observations = obs_as_tensor(flat_obs, self.device)  # type: ignore[arg-type]
-        actions = th.as_tensor(self._pair_actions(pairs), device=self.device)
+        pair_actions = self._pair_actions(pairs)
+        actions = th.as_tensor(pair_actions.reshape(-1, pair_actions.shape[-1])[real_steps], device=self.device)
         mask = th.as_tensor(pairs.mask, device=self.device)
         labels = th.as_tensor(pairs.labels, device=self.device)
         return observations, actions, mask, labels  # type: ignore[return-value]
 
-    def _pair_low_obs(self, pairs: TrajectoryPairs, actions: np.ndarray) -> dict[str, th.Tensor]:
-        """Lower-level observations (s_t, g_t) of every step of both trajectories, g_t the subgoal of ``actions``."""
+    def _pair_low_obs(self, pairs: TrajectoryPairs, actions: np.ndarray, real_only: bool = False) -> dict[str, th.Tensor]:
+        """Lower-level observations (s_t, g_t) of every step of both trajectories, g_t the subgoal of ``actions``.
+
+        :param real_only: only the real steps (``pairs.mask``), in the order of the mask's true entries
+        """
         assert self.subgoal_space is not None
         flat_obs = flat_pair_observations(pairs)
-        subgoals = self.subgoal_space.to_world(actions.reshape(-1, actions.shape[-1]))
+        actions = actions.reshape(-1, actions.shape[-1])
+        if real_only:
+            real_steps = pairs.mask.reshape(-1)
+            flat_obs, actions = {key: value[real_steps] for key, value in flat_obs.items()}, actions[real_steps]
+        subgoals = self.subgoal_space.to_world(actions)
         return self.low_level.tensor_obs(low_level_observation(flat_obs, subgoals, self.subgoal_space))
 
-    def _value_gaps(self, pairs: TrajectoryPairs) -> th.Tensor:
-        """Per-step ``V^L(s_t, g_t) - V^L_m(s_t, g_t)`` of both trajectories, shape ``(2, B, T)``, no gradient."""
+    def _value_gaps(self, pairs: TrajectoryPairs, mask: th.Tensor) -> th.Tensor:
+        """Per-step ``V^L(s_t, g_t) - V^L_m(s_t, g_t)`` of both trajectories, shape ``(2, B, T)`` (0 at the padding, which
+        every loss term masks out, so the lower networks evaluate only the real steps), no gradient."""
         with th.no_grad():
-            gaps = sac_value_gap(self.lower, self._value_snapshot, self._pair_low_obs(pairs, self._pair_actions(pairs)))
-        return gaps.reshape(pairs.mask.shape)
+            low_obs = self._pair_low_obs(pairs, self._pair_actions(pairs), real_only=True)
+            return at_real_steps(sac_value_gap(self.lower, self._value_snapshot, low_obs), mask)
 
     def _refresh_value_snapshot(self) -> None:
         """Once the lower critic is ``value_steps`` updates past the snapshot, the current critic becomes the snapshot."""
@@ -475,15 +491,18 @@ class DIPPER(HierarchicalAlgorithm):
         return self.value_score_coef * (values.reshape(pairs.mask.shape) * pairs.mask).sum(axis=-1)
 
     def _reparameterised_low_value(self, pairs: TrajectoryPairs, observations: dict[str, th.Tensor]) -> th.Tensor:
-        """``V^L(s, g(u))`` for ``u ~ pi^H(.|s, g*)`` (reparameterised, so it has a gradient), at the pairs' real steps."""
+        """``V^L(s, g(u))`` for ``u ~ pi^H(.|s, g*)`` (reparameterised, so it has a gradient), at the pairs' real steps.
+
+        :param observations: the higher-level observations of the real steps (from :meth:`_pair_tensors`)
+        """
         assert self.subgoal_space is not None
         actions, _ = self.policy.sample_with_log_prob(observations)
-        low_obs = self._pair_low_obs(pairs, pairs.actions)
+        low_obs = self._pair_low_obs(pairs, pairs.actions, real_only=True)
         low_obs["desired_goal"] = self.low_level.normalize_subgoal_tensor(self.subgoal_space.to_world_tensor(actions))
         self.lower.policy.requires_grad_(False)
         values = sac_state_value(self.lower, low_obs)
         self.lower.policy.requires_grad_(True)
-        return values[th.as_tensor(pairs.mask.reshape(-1), device=self.device)]
+        return values
 
     # ---------------------------------------------------------------------------------------------------- saving
 
