@@ -371,3 +371,23 @@ def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
     )
     assert model._n_updates > 0
     assert any(not th.equal(before, after) for before, after in zip(actor, model.policy.actor.parameters(), strict=True))
+
+
+def test_fetch_pairs_are_drawn_as_frame_strips():
+    """Fetch: the object put back where each option left it, rendered headless, one strip per trajectory."""
+    import gymnasium as gym
+
+    from sb3_dipper.labelling.render import PairRenderer
+
+    env = gym.make("FetchPickAndPlace-v4")
+    obs, _ = env.reset(seed=0)
+    length = 3
+    pairs = random_pairs(1, length=length)
+    pairs.observations = {key: np.broadcast_to(value, (2, 1, length, value.size)).copy() for key, value in obs.items()}
+    pairs.next_achieved_goals = pairs.observations["achieved_goal"] + np.array([0.0, 0.05, 0.0])
+    renderer = PairRenderer({"env_id": "FetchPickAndPlace-v4", "env_kwargs": {}, "subgoal_space": None})
+    pictures = [renderer.render(pairs, side) for side in ("left", "right")]
+    renderer.close()
+    env.close()
+    for png in pictures:
+        assert png.startswith(b"\x89PNG") and len(png) > 10_000
