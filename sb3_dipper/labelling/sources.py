@@ -69,7 +69,9 @@ class QueuedPreferenceSource(PreferenceSource):
     :meth:`label` never waits: it answers NaN for the pairs it queues, and :meth:`collect` returns those labelled since
     (skipped pairs are dropped). Pairs meant for people once ``budget`` pairs were queued get the script's label, or
     none without a script. A source started on a directory with queued pairs takes over those still waiting; with
-    ``reuse_labels`` it also hands training every label already given (a restarted run keeps people's work).
+    ``reuse_labels`` it also hands training every label already given (a run restarted from scratch keeps people's
+    work; a model resumed from a checkpoint whose dataset holds those pairs already would get them twice: pass
+    ``reuse_labels=False`` there).
 
     :param directory: the label queue directory, shared with the page (``sb3-dipper-label --run DIRECTORY``)
     :param person_fraction: the share of new pairs sent to people; the script labels the others at once (mixed mode)
