@@ -39,6 +39,9 @@ autodoc_type_aliases: dict[str, str] = {}
 # The executed examples: one thread (tiny networks), quiet, fixed seeds.
 doctest_global_setup = """
 import os
+import warnings
+# SB3's reminder when a replay buffer is loaded to resume (the guide's recipe truncates on purpose).
+warnings.filterwarnings("ignore", message="The last trajectory in the replay buffer will be truncated")
 os.environ.setdefault("MUJOCO_GL", "egl")
 import torch as th
 th.set_num_threads(1)
