@@ -8,7 +8,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 sys.path.insert(0, os.path.abspath(".."))
 
-import sb3_dipper  # noqa: E402  (after sys.path: the checkout's package, registering the env ids)
+# After sys.path: the checkout's package (it also registers the env ids the examples use).
+import sb3_dipper
 
 project = "sb3-dipper"
 author = "sb3-dipper contributors"
