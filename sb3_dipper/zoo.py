@@ -11,7 +11,17 @@ does that, then runs rl-zoo3's own CLI with its own flags:
 For the algorithms this package has hyperparameters for, ``train`` reads ``hyperparams/<algo>.yml`` unless
 ``--conf-file`` is given (rl-zoo3 takes its ``default`` entry for an env without an entry of its own). ``--env`` also
 takes gymnasium's ``module:EnvId`` form. Each ``train`` run creates its run folder exclusively, so runs started
-together with the same ``-f`` never share one. rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so it is
+together with the same ``-f`` never share one.
+
+Long runs can be trained in pieces: ``--pause-after-minutes M`` saves a resume checkpoint in the run folder after M
+minutes of training and stops; ``--resume RUN_FOLDER`` (with the same other flags) continues that run in its folder to
+its whole budget: same step count, evaluations on the same grid appended to the same ``evaluations.npz``, the replay
+buffers as they were. The resumed part reseeds its random generators, so it is not the same run as one without a pause::
+
+    sb3-dipper-zoo train --algo dipper --env FetchPushFixed-v0 -f logs --pause-after-minutes 80
+    sb3-dipper-zoo train --algo dipper --env FetchPushFixed-v0 -f logs --resume logs/dipper/FetchPushFixed-v0_1
+
+rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so it is
 imported only here, and only when a command runs.
 """
 
@@ -19,15 +29,22 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import os
 import runpy
+import shutil
 import sys
+import time
+import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import optuna
+import pandas as pd
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import CSVOutputFormat
 
 from sb3_dipper.dac import DAC
@@ -52,6 +69,11 @@ ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "dac": DAC,
     "dpo_flat": DPOFlat,
 }
+
+STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv
+# A paused run's checkpoint: <run folder>/resume/model.zip and the files beside it.
+RESUME_FOLDER = "resume"
+RESUME_MODEL = "model.zip"
 
 
 class CSVProgressCallback(BaseCallback):
@@ -171,8 +193,11 @@ SAMPLERS.update(hier=sample_hier_params, piper=sample_piper_params, saga=sample_
 SAMPLERS.update(hac=sample_hier_params, raps=sample_hier_params, dpo_flat=sample_dpo_flat_params)
 
 
-def register() -> None:
-    """Make rl-zoo3 know our algorithms, samplers and env ids, and give each run its own folder (idempotent)."""
+def register(control: RunControl | None = None) -> None:
+    """Make rl-zoo3 know our algorithms, samplers and env ids, and give each run its own folder (idempotent).
+
+    :param control: how ``train`` pauses or resumes (default: neither)
+    """
     import gymnasium as gym
     import gymnasium_robotics
     import rl_zoo3
@@ -186,7 +211,7 @@ def register() -> None:
     # DAC is SAC with a learned reward: the zoo's own SAC search space and its converter apply unchanged.
     HYPERPARAMS_SAMPLER["dac"] = HYPERPARAMS_SAMPLER["sac"]
     HYPERPARAMS_CONVERTER["dac"] = HYPERPARAMS_CONVERTER["sac"]
-    _install_run_folder_claim()
+    _install_run_folder_claim(control)
 
 
 # The subcommands of `sb3-dipper-zoo`: rl-zoo3's CLI scripts plus its video recorder, which is a module of its own.
@@ -289,25 +314,233 @@ def claim_run_folder(log_path: str, env_name: str, run_id: int, suffix: str = ""
             return save_path
 
 
-def _install_run_folder_claim() -> None:
-    """Make rl-zoo3's train create each run's folder with :func:`claim_run_folder` (idempotent)."""
+@dataclass
+class RunControl:
+    """Our own flags of ``sb3-dipper-zoo train``, read before rl-zoo3 parses the rest.
+
+    :param pause_after_minutes: ``--pause-after-minutes M``: after M minutes of training, save a resume checkpoint in
+        the run folder and stop (rl-zoo3 then saves the model as usual)
+    :param resume: ``--resume RUN_FOLDER``: continue that run from its resume checkpoint, in the same folder, to the
+        run's whole budget
+    """
+
+    pause_after_minutes: float | None = None
+    resume: Path | None = None
+
+
+def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
+    """Our flags out of ``train``'s argv (rl-zoo3 would refuse them), with checks that name the flag and the fix."""
+    parser = argparse.ArgumentParser(add_help=False, exit_on_error=False)
+    parser.add_argument("--pause-after-minutes", type=float)
+    parser.add_argument("--resume", type=Path)
+    try:
+        flags, rest = parser.parse_known_args(argv)
+    except argparse.ArgumentError as error:
+        raise ValueError(f"sb3-dipper-zoo train: {error}") from None
+    if flags.pause_after_minutes is not None and not flags.pause_after_minutes >= 0:
+        raise ValueError(f"--pause-after-minutes must be >= 0 minutes, got {flags.pause_after_minutes}")
+    if flags.resume is not None and not (flags.resume / RESUME_FOLDER / RESUME_MODEL).is_file():
+        raise FileNotFoundError(
+            f"--resume {flags.resume}: no resume checkpoint {flags.resume / RESUME_FOLDER / RESUME_MODEL}. Resume a run "
+            "folder that a run started with --pause-after-minutes paused in."
+        )
+    return RunControl(flags.pause_after_minutes, flags.resume), rest
+
+
+class PauseCheckpointCallback(BaseCallback):
+    """After ``minutes`` of training, save everything training needs to continue and stop training.
+
+    The checkpoint ``<run>/resume/`` holds the model (``model.zip``), its replay buffers (``replay_buffer.pkl`` and, for
+    the hierarchical algorithms, the higher level's files beside it) and the ``VecNormalize`` statistics when the env
+    is normalised (``<env>/vecnormalize.pkl``, where rl-zoo3 looks for them). It is written to ``resume.tmp/`` and
+    renamed into place, so a run killed while pausing keeps its previous checkpoint whole.
+
+    :param minutes: training time before the pause, measured from the start of ``learn``
+    :param run_folder: the run folder
+    :param env_name: the env id, the name of rl-zoo3's folder for the normalisation statistics
+    """
+
+    def __init__(self, minutes: float, run_folder: Path, env_name: str) -> None:
+        super().__init__()
+        self.seconds = 60.0 * minutes
+        self.run_folder = run_folder
+        self.env_name = env_name
+        self.paused = False
+
+    def _init_callback(self) -> None:
+        if not hasattr(self.model, "save_replay_buffer"):
+            raise ValueError(
+                f"--pause-after-minutes: {type(self.model).__name__} has no replay buffer to save; pausing and "
+                "resuming is for off-policy algorithms (ours, SAC, TQC, ...)."
+            )
+        self.start = time.monotonic()
+
+    def _on_step(self) -> bool:
+        if time.monotonic() - self.start < self.seconds:
+            return True
+        self.save_checkpoint()
+        self.paused = True
+        return False
+
+    def save_checkpoint(self) -> None:
+        staging = self.run_folder / f"{RESUME_FOLDER}.tmp"
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir()
+        self.model.save(staging / RESUME_MODEL)
+        self.model.save_replay_buffer(staging / "replay_buffer.pkl")  # type: ignore[attr-defined]
+        normalize = self.model.get_vec_normalize_env()
+        if normalize is not None:
+            (staging / self.env_name).mkdir()
+            normalize.save(str(staging / self.env_name / "vecnormalize.pkl"))
+        replace_folder(staging, self.run_folder / RESUME_FOLDER)
+
+
+def replace_folder(staging: Path, target: Path) -> None:
+    """Put ``staging`` at ``target``; an old ``target`` is moved aside first and removed last."""
+    old = target.with_name(target.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if target.exists():
+        target.rename(old)
+    staging.rename(target)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def checkpoint_steps(run_folder: Path) -> int:
+    """The primitive steps the run's resume checkpoint has trained (from the JSON part of the model zip, no pickle)."""
+    with zipfile.ZipFile(run_folder / RESUME_FOLDER / RESUME_MODEL) as archive:
+        return int(json.loads(archive.read("data"))["num_timesteps"])
+
+
+def set_aside_part(run_folder: Path) -> None:
+    """Move the monitor files and ``progress.csv`` of the part trained so far into ``<run>/part_<k>/``.
+
+    The resumed part writes its own (both are created afresh, ``progress.csv`` exclusively); ``zoo_scripts/plot.py``
+    reads the ``progress.csv`` of every part in step order. A part killed after its last checkpoint logged steps the
+    resumed run trains again: those rows are dropped, so every step is logged once.
+    """
+    logs = [*run_folder.glob("*.monitor.csv"), *run_folder.glob("progress.csv")]
+    if not logs:
+        return
+    part = run_folder / f"part_{1 + len(list(run_folder.glob('part_*')))}"
+    part.mkdir()
+    for path in logs:
+        path.rename(part / path.name)
+    progress = part / "progress.csv"
+    if progress.exists() and progress.stat().st_size > 0:
+        rows = pd.read_csv(progress)
+        if STEPS_KEY in rows:
+            rows[rows[STEPS_KEY] <= checkpoint_steps(run_folder)].to_csv(progress, index=False)
+
+
+def continue_evaluations(callbacks: list[BaseCallback], num_timesteps: int, n_envs: int, run_folder: Path) -> None:
+    """Let a resumed run's callbacks go on where the paused run's stopped.
+
+    Step-counting callbacks (evaluation, checkpoints) count calls, one per vectorised step: they are set to the steps
+    already trained, so evaluations stay every ``--eval-freq`` steps from the start of the run. ``EvalCallback`` gets
+    the evaluations already recorded in ``evaluations.npz`` (it rewrites the whole file at every evaluation) and the
+    best mean reward among them (so ``best_model.zip`` is replaced only by a better one).
+    """
+    for callback in callbacks:
+        callback.n_calls = num_timesteps // n_envs
+        if not isinstance(callback, EvalCallback):
+            continue
+        evaluations = run_folder / "evaluations.npz"
+        if not evaluations.exists():
+            continue
+        with np.load(evaluations) as data:
+            # Evaluations after the checkpoint (a part killed before its next pause) are made again.
+            kept = data["timesteps"] <= num_timesteps
+            callback.evaluations_timesteps = [int(step) for step in data["timesteps"][kept]]
+            callback.evaluations_results = [list(results) for results in data["results"][kept]]
+            callback.evaluations_length = [list(lengths) for lengths in data["ep_lengths"][kept]]
+            if "successes" in data:
+                callback.evaluations_successes = [list(successes) for successes in data["successes"][kept]]
+        if callback.evaluations_results:
+            callback.best_mean_reward = max(float(np.mean(results)) for results in callback.evaluations_results)
+
+
+def learn_resumed(
+    model: BaseAlgorithm, n_timesteps: int, callbacks: list[BaseCallback], log_interval: int, run_folder: Path
+) -> None:
+    """rl-zoo3's ``ExperimentManager.learn`` for a resumed run: train what is left of the budget.
+
+    rl-zoo3 restarts a loaded model's step count (``reset_num_timesteps=True``) and trains ``-n`` more steps; a resumed
+    run continues its count. Once the whole budget is trained the resume checkpoint is removed: nothing is left to
+    resume. The rest (log interval, closing the progress bar and the env) is rl-zoo3's.
+    """
+    kwargs: dict[str, Any] = {"reset_num_timesteps": False, "callback": callbacks}
+    if log_interval > -1:
+        kwargs["log_interval"] = log_interval
+    elif log_interval < -1:
+        kwargs["log_interval"] = None
+    try:
+        model.learn(max(n_timesteps - model.num_timesteps, 0), **kwargs)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if callbacks:
+            callbacks[0].on_training_end()
+        assert model.env is not None
+        model.env.close()
+    paused_again = any(isinstance(callback, PauseCheckpointCallback) and callback.paused for callback in callbacks)
+    if model.num_timesteps >= n_timesteps and not paused_again:
+        shutil.rmtree(run_folder / RESUME_FOLDER)
+
+
+def _install_run_folder_claim(control: RunControl | None = None) -> None:
+    """Make rl-zoo3's train create each run's folder with :func:`claim_run_folder` and obey ``control``.
+
+    :param control: ``--pause-after-minutes`` and ``--resume`` (idempotent: the last call's control counts)
+    """
     import rl_zoo3.train
     from rl_zoo3.exp_manager import ExperimentManager
     from rl_zoo3.utils import get_latest_run_id
 
+    run_control = control or RunControl()
+
     class OwnRunFolderExperimentManager(ExperimentManager):
-        """rl-zoo3's experiment manager whose run folder is claimed exclusively when it is created."""
+        """rl-zoo3's experiment manager whose run folder is claimed exclusively when it is created, and which pauses
+        and resumes runs (:class:`RunControl`)."""
 
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             # rl-zoo3's train passes its --uuid suffix by keyword.
             self.run_folder_suffix = kwargs.get("uuid_str", "")
+            if run_control.resume is not None:
+                # rl-zoo3's own continuation: it loads the model, the replay buffer beside it and, from
+                # <dir>/<env>/vecnormalize.pkl, the normalisation statistics.
+                self.trained_agent = str(run_control.resume / RESUME_FOLDER / RESUME_MODEL)
+                self.continue_training = True
 
         def create_log_folder(self) -> None:
-            run_id = get_latest_run_id(self.log_path, self.env_name) + 1
-            self.save_path = claim_run_folder(self.log_path, self.env_name, run_id, self.run_folder_suffix)
-            self.params_path = f"{self.save_path}/{self.env_name}"
+            if run_control.resume is not None:
+                self.save_path = str(run_control.resume)
+                self.params_path = f"{self.save_path}/{self.env_name}"
+                set_aside_part(run_control.resume)
+            else:
+                run_id = get_latest_run_id(self.log_path, self.env_name) + 1
+                self.save_path = claim_run_folder(self.log_path, self.env_name, run_id, self.run_folder_suffix)
+                self.params_path = f"{self.save_path}/{self.env_name}"
             super().create_log_folder()
+
+        def create_callbacks(self) -> None:
+            super().create_callbacks()
+            if run_control.pause_after_minutes is not None:
+                pause = PauseCheckpointCallback(run_control.pause_after_minutes, Path(self.save_path), self.env_name)
+                self.callbacks.append(pause)
+
+        def setup_experiment(self) -> Any:
+            experiment = super().setup_experiment()
+            if experiment is not None and run_control.resume is not None:
+                model = experiment[0]
+                continue_evaluations(self.callbacks, model.num_timesteps, model.n_envs, run_control.resume)
+            return experiment
+
+        def learn(self, model: BaseAlgorithm) -> None:
+            if run_control.resume is None:
+                super().learn(model)
+            else:
+                learn_resumed(model, self.n_timesteps, self.callbacks, self.log_interval, run_control.resume)
 
     rl_zoo3.train.ExperimentManager = OwnRunFolderExperimentManager  # type: ignore[misc]
 
@@ -315,8 +548,9 @@ def _install_run_folder_claim() -> None:
 def main() -> None:
     """``sb3-dipper-zoo {train,enjoy,record_video,plot_train,plot_from_file,all_plots} ...``: rl-zoo3's CLI, our algorithms."""
     command = command_parser().parse_args(sys.argv[1:2]).command
-    register()
-    argv = zoo_argv(command, sys.argv[2:])
+    control, argv = split_run_control(sys.argv[2:]) if command == "train" else (RunControl(), sys.argv[2:])
+    register(control)
+    argv = zoo_argv(command, argv)
     # rl-zoo3's parsers name the program after sys.argv[0]: their usage lines then read `sb3-dipper-zoo train ...`.
     program = f"sb3-dipper-zoo {command}"
     if command == "record_video":

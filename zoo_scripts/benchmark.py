@@ -31,7 +31,11 @@ training and the evaluation envs), and each run is an ordinary zoo run folder::
     OUT/<variant or default>/seed_<n>/<algo>/<env>.log     the zoo's output of the run's last attempt
 
 A run with ``result.json`` is skipped, so rerunning the same command after a crash redoes only the unfinished runs (their
-leftover folders are removed first). ``zoo_scripts/plot.py -f OUT/default/seed_*`` plots the runs like any zoo runs.
+leftover folders are removed first). Runs longer than a session are trained in parts: with ``--pause-after-minutes M``
+each run pauses after M minutes of training with a resume checkpoint in its folder (``resume/``, see
+``sb3-dipper-zoo train --pause-after-minutes``), and rerunning the command continues every paused run where it stopped,
+in the same folder and on the same evaluation grid (``parts.json`` adds up the parts' time for ``result.json``).
+``zoo_scripts/plot.py -f OUT/default/seed_*`` plots the runs like any zoo runs.
 The report reads the runs on disk through ``plot.py``'s loaders (finished or not, ``--report-only`` without running
 anything): a table per task (seeds, with the unfinished ones counted as partial, the last evaluation every seed has
 reached, the success there as mean +- std over seeds, the steps where the mean success first reaches 50 %, and for
@@ -97,6 +101,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plot
 from configs import make_env, make_model, torch_threads
 from plot import LABELS, label
+
+from sb3_dipper.zoo import RESUME_FOLDER
 
 REPO = Path(__file__).resolve().parent.parent
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
@@ -320,11 +326,8 @@ def run_updates(args: argparse.Namespace) -> None:
 
 DEFAULT_VARIANT = "default"  # the folder of the runs without --variant
 RESULT = "result.json"
-# ------------------------------------------------------------------------------------------------------------- learning
-
-
-DEFAULT_VARIANT = "default"  # the folder of the runs without --variant
-RESULT = "result.json"
+PARTS = "parts.json"  # the training time of a paused run's parts
+RESUME_MODEL = Path(RESUME_FOLDER) / "model.zip"
 
 
 def run_name(algo: str, variant: str | None) -> str:
@@ -368,6 +371,8 @@ def zoo_flags(args: argparse.Namespace) -> list[str]:
     """The ``sb3-dipper-zoo train`` flags every run of this command shares (evaluation, budget, overrides)."""
     n_eval_envs = args.n_eval_envs or min(args.eval_episodes, 10)
     flags = ["--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--n-eval-envs", str(n_eval_envs)]
+    if args.pause_after_minutes is not None:
+        flags += ["--pause-after-minutes", str(args.pause_after_minutes)]
     if args.n_timesteps:
         flags += ["-n", str(args.n_timesteps)]
     if args.env_kwargs:
@@ -381,18 +386,37 @@ def finished(run: Path) -> bool:
     return (run / RESULT).exists()
 
 
-def trained_to_the_end(run: Path) -> bool:
-    """Whether the run's final model trained its whole budget: rl-zoo3 also saves the model of a run stopped by Ctrl-C.
-
-    Reads ``num_timesteps`` and ``_total_timesteps`` from the JSON part of the model zip (no pickle).
-    """
+def model_steps(run: Path) -> tuple[int, int] | None:
+    """``num_timesteps`` and ``_total_timesteps`` of the run's final model, read from the JSON part of its zip (no
+    pickle), or None before it has one."""
     env_name = run.name.rsplit("_", 1)[0]  # the zoo names the run folder <env>_<n> and the model <env>.zip
     model = run / f"{env_name}.zip"
     if not model.exists():
-        return False
+        return None
     with zipfile.ZipFile(model) as archive:
         data = json.loads(archive.read("data"))
-    return data["num_timesteps"] >= data["_total_timesteps"]
+    return int(data["num_timesteps"]), int(data["_total_timesteps"])
+
+
+def trained_to_the_end(run: Path) -> bool:
+    """Whether the run's final model trained its whole budget: rl-zoo3 also saves the model of a run stopped by Ctrl-C
+    or paused by ``--pause-after-minutes``."""
+    steps = model_steps(run)
+    return steps is not None and steps[0] >= steps[1]
+
+
+def resumable(run: Path) -> bool:
+    """Whether an unfinished run was paused with a resume checkpoint (``sb3-dipper-zoo train --pause-after-minutes``)."""
+    return not finished(run) and (run / RESUME_MODEL).is_file()
+
+
+def add_part_seconds(run: Path, seconds: float) -> float:
+    """Add a part's training time to the run's ``parts.json``; the run's time so far."""
+    total = seconds + (float(json.loads((run / PARTS).read_text())["seconds"]) if (run / PARTS).exists() else 0.0)
+    temporary = run / f"{PARTS}.tmp"
+    temporary.write_text(json.dumps({"seconds": total}))
+    temporary.replace(run / PARTS)
+    return total
 
 
 def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | None, flags: list[str]) -> str:
@@ -404,24 +428,33 @@ def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | No
     :return: a line for the console
     """
     log_folder = seed_folder(out, variant, seed)
+    paused = [run for run in plot.zoo_runs(log_folder, algo, env_id) if resumable(run)]
     for unfinished in plot.zoo_runs(log_folder, algo, env_id):
-        if not finished(unfinished):
+        if not finished(unfinished) and unfinished not in paused[-1:]:
             shutil.rmtree(unfinished)
     output = log_folder / algo / f"{env_id}.log"
     output.parent.mkdir(parents=True, exist_ok=True)
     command = [sys.executable, "-m", "sb3_dipper.zoo", "train", "--algo", algo, "--env", env_id, "--seed", str(seed)]
     command += ["-f", str(log_folder), "--num-threads", str(torch_threads()), *flags]
+    if paused:
+        command += ["--resume", str(paused[-1])]
     start = time.time()
-    with open(output, "w") as log:
+    with open(output, "a" if paused else "w") as log:
         returncode = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
     seconds = time.time() - start
     runs = plot.zoo_runs(log_folder, algo, env_id)
+    if returncode == 0 and runs and resumable(runs[-1]) and not trained_to_the_end(runs[-1]):
+        add_part_seconds(runs[-1], seconds)
+        steps = model_steps(runs[-1])
+        done = f"{steps[0]:,} of {steps[1]:,}" if steps else "some"
+        return f"{run_name(algo, variant)} {env_id} seed {seed}: paused after {done} steps; the same command resumes it"
     if returncode != 0 or not runs or not trained_to_the_end(runs[-1]):
         tail = "".join(output.read_text().splitlines(keepends=True)[-20:])
         raise RuntimeError(
             f"{run_name(algo, variant)} on {env_id}, seed {seed}: sb3-dipper-zoo train exited with {returncode} without "
             f"training its whole budget; its output is in {output}, ending with:\n{tail}"
         )
+    seconds = add_part_seconds(runs[-1], seconds)  # a resumed run's time is the sum of its parts
     result = dict(algo=algo, variant=variant, env=env_id, seed=seed, seconds=seconds)
     temporary = runs[-1] / f"{RESULT}.tmp"
     temporary.write_text(json.dumps(result))
@@ -636,6 +669,11 @@ def main() -> None:
     learning.add_argument("--n-timesteps", type=int, help="override every entry's n_timesteps (the zoo's -n)")
     learning.add_argument("--workers", type=int, default=2, help="runs at a time on this machine")
     learning.add_argument("--ray-address", help="run on this Ray cluster (e.g. 10.0.0.1:6379 or auto) instead")
+    learning.add_argument(
+        "--pause-after-minutes",
+        type=float,
+        help="pause each run after this many minutes of training with a resume checkpoint; the same command resumes it",
+    )
     learning.add_argument("--out", default="runs/benchmark", help="runs in <out>/<variant>/seed_<n>/, tables, CSV, figure")
     learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")
     learning.add_argument(

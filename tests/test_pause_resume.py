@@ -1,0 +1,106 @@
+"""Runs longer than a session: ``sb3-dipper-zoo train --pause-after-minutes`` leaves a resume checkpoint, ``--resume``
+continues the run in its folder to its whole budget, and ``benchmark.py learning`` does both by rerunning a command."""
+
+import json
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
+
+from sb3_dipper.zoo import RESUME_FOLDER, RESUME_MODEL, continue_evaluations, set_aside_part, split_run_control
+from tests.test_benchmark import ENV_ID, learning_command, run_folder
+
+
+@pytest.mark.parametrize("algo", ["hier", "sac"])
+def test_a_paused_run_resumes_in_its_folder_to_its_whole_budget(algo, tmp_path):
+    out = tmp_path / "runs"
+    command = learning_command(out, "--algos", algo, "--seeds", "0", "--workers", "1")
+    paused = subprocess.run([*command, "--pause-after-minutes", "0"], capture_output=True, text=True, timeout=300)
+    assert paused.returncode == 0, paused.stderr[-3000:]
+    run = run_folder(out, algo, 0)
+    assert "seed 0: paused after 1 of 300 steps; the same command resumes it" in paused.stdout
+    assert (run / RESUME_FOLDER / RESUME_MODEL).is_file() and not (run / "result.json").exists()
+
+    resumed = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "1 runs to do, 0 already finished" in resumed.stdout
+    # The same folder, trained to the end: the step count went on, the evaluations are on the run's grid.
+    assert sorted(path.name for path in run.parent.iterdir()) == [f"{ENV_ID}.log", f"{ENV_ID}_1"]
+    with zipfile.ZipFile(run / f"{ENV_ID}.zip") as archive:
+        data = json.loads(archive.read("data"))
+    assert data["num_timesteps"] >= 300 and data["_total_timesteps"] == 300
+    with np.load(run / "evaluations.npz") as evaluations:
+        assert list(evaluations["timesteps"]) == [150, 300]
+    result = json.loads((run / "result.json").read_text())
+    assert result["seconds"] >= json.loads((run / "parts.json").read_text())["seconds"] > 0
+    assert not (run / RESUME_FOLDER).exists()  # nothing is left to resume
+    # The paused part's logs are set aside; the resumed part logged its own.
+    assert (run / "part_1" / "0.monitor.csv").exists() and (run / "0.monitor.csv").exists()
+    if algo == "hier":
+        assert (run / "part_1" / "progress.csv").exists() and (run / "progress.csv").exists()
+
+
+def fake_checkpoint(run: Path, num_timesteps: int) -> None:
+    (run / RESUME_FOLDER).mkdir(parents=True)
+    with zipfile.ZipFile(run / RESUME_FOLDER / RESUME_MODEL, "w") as archive:
+        archive.writestr("data", json.dumps({"num_timesteps": num_timesteps}))
+
+
+def test_the_resumed_evaluation_continues_the_recorded_one(tmp_path):
+    """Evaluations after the checkpoint (made by a part killed before its next pause) are dropped: they are made again."""
+    np.savez(
+        tmp_path / "evaluations.npz",
+        timesteps=np.array([100, 200, 300]),
+        results=np.array([[-50.0, -40.0], [-10.0, -20.0], [0.0, 0.0]]),
+        ep_lengths=np.full((3, 2), 50),
+        successes=np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]),
+    )
+    evaluation = EvalCallback(gym.make("Pendulum-v1"), eval_freq=50)
+    checkpoint = CheckpointCallback(save_freq=50, save_path=str(tmp_path))
+    continue_evaluations([evaluation, checkpoint], num_timesteps=250, n_envs=2, run_folder=tmp_path)
+    assert evaluation.n_calls == checkpoint.n_calls == 125
+    assert evaluation.evaluations_timesteps == [100, 200]
+    assert evaluation.evaluations_results == [[-50.0, -40.0], [-10.0, -20.0]]
+    assert evaluation.evaluations_successes == [[0.0, 0.0], [1.0, 0.0]]
+    assert evaluation.best_mean_reward == -15.0
+
+
+def test_setting_a_part_aside_keeps_only_the_steps_of_the_checkpoint(tmp_path):
+    fake_checkpoint(tmp_path, num_timesteps=200)
+    (tmp_path / "0.monitor.csv").write_text("#\nr,l,t\n")
+    pd.DataFrame({"time/total_timesteps": [100, 200, 300], "rollout/low_value": [-1.0, -2.0, -3.0]}).to_csv(
+        tmp_path / "progress.csv", index=False
+    )
+    set_aside_part(tmp_path)
+    assert not (tmp_path / "progress.csv").exists() and not (tmp_path / "0.monitor.csv").exists()
+    assert (tmp_path / "part_1" / "0.monitor.csv").exists()
+    assert pd.read_csv(tmp_path / "part_1" / "progress.csv")["time/total_timesteps"].tolist() == [100, 200]
+    set_aside_part(tmp_path)  # nothing logged since: no empty part
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["part_1", RESUME_FOLDER]
+
+
+def test_the_pause_and_resume_flags_are_ours_and_checked(tmp_path):
+    control, rest = split_run_control(["--algo", "sac", "--pause-after-minutes", "80", "-n", "10"])
+    assert control.pause_after_minutes == 80.0 and control.resume is None and rest == ["--algo", "sac", "-n", "10"]
+    with pytest.raises(ValueError, match="--pause-after-minutes must be >= 0"):
+        split_run_control(["--pause-after-minutes", "-1"])
+    with pytest.raises(FileNotFoundError, match=f"--resume {tmp_path}: no resume checkpoint"):
+        split_run_control(["--resume", str(tmp_path)])
+    fake_checkpoint(tmp_path, num_timesteps=10)
+    assert split_run_control(["--resume", str(tmp_path)])[0].resume == tmp_path
+
+
+def test_an_algorithm_without_a_replay_buffer_cannot_pause(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_dipper.zoo", "train", "--algo", "ppo", "--env", "Pendulum-v1", "-n", "64",
+         "-f", str(tmp_path), "--pause-after-minutes", "0", "-params", "n_steps:32", "batch_size:32"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert result.returncode != 0
+    assert "pausing and resuming is for off-policy algorithms" in result.stderr
