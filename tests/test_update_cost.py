@@ -4,6 +4,7 @@ Each test runs the library's update on a fixed batch and the straightforward com
 was made cheaper, restated here) on the same batch, weights and random draws, and compares losses and gradients.
 """
 
+import argparse
 import copy
 
 import numpy as np
@@ -19,6 +20,7 @@ from sb3_dipper.common.low_level import clipped_soft_target, sac_value_gap, step
 from sb3_dipper.common.preferences import flat_pair_observations
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import short_maze, tiny_model
+from zoo_scripts import benchmark
 
 TOLERANCE = 1e-5
 
@@ -78,11 +80,9 @@ def straightforward_demo_sac_step(sac: DemoSAC, batch, n_demo: int) -> dict[str,
     demo_actions = batch.actions[-n_demo:]
     policy_actions = sac.actor(demo_obs, deterministic=True)
     with th.no_grad():
-        keep = (
-            (sac.critic.q1_forward(demo_obs, demo_actions) > sac.critic.q1_forward(demo_obs, policy_actions)).float().reshape(-1)
-            if sac.q_filter
-            else th.ones(n_demo)
-        )
+        demo_values = sac.critic.q1_forward(demo_obs, demo_actions)
+        policy_values = sac.critic.q1_forward(demo_obs, policy_actions)
+        keep = (demo_values > policy_values).float().reshape(-1) if sac.q_filter else th.ones(n_demo)
     bc_loss = behaviour_cloning_loss(policy_actions, demo_actions, keep)
     actor_loss = sac.rl_coef * sac_loss + sac.bc_coef * bc_loss
     sac.actor.optimizer.zero_grad()
@@ -178,3 +178,15 @@ def test_higher_update_on_real_steps_equals_the_padded_update(trained_dipper, mo
     assert logged["train/high_nll"] == pytest.approx(nll.item(), abs=TOLERANCE)
     assert logged["train/high_value_gap"] == pytest.approx(expected_gap, abs=TOLERANCE) and expected_gap != 0.0
     assert_all_close(gradients(model.policy.actor), expected_gradients)
+
+
+def test_the_updates_benchmark_prints_ratios_to_sb3_sac(trained_dipper, monkeypatch, capsys):
+    monkeypatch.setattr(benchmark, "make_model", lambda algo, env_id, seed: (trained_dipper, None, 0))
+    benchmark.run_updates(argparse.Namespace(env="PointMazeFourRooms-v0", warmup=20, updates=2, repeats=1))
+    rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and "---" not in line]
+    assert [row[0] for row in rows[1:]] == [
+        "| SB3 SAC.train, 1 gradient step",
+        "| DemoSAC.train, 1 gradient step",
+        "| DIPPER higher-level update",
+    ]
+    assert rows[1][2] == "1.00 |" and all(float(row[1]) > 0.0 for row in rows[1:])
