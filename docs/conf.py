@@ -33,7 +33,7 @@ autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 autodoc_typehints_description_target = "documented"
 autodoc_class_signature = "mixed"
-autodoc_inherit_docstrings = False
+autodoc_inherit_docstrings = True
 # The library is type-checked by mypy; forward references in annotations need not resolve for the docs.
 autodoc_type_aliases: dict[str, str] = {}
 
