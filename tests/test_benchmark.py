@@ -105,10 +105,11 @@ def test_the_report_and_plot_py_read_the_runs_alike(resumed):
     row = next(line for line in rerun.stdout.splitlines() if line.startswith("| HIER |"))
     cells = [cell.strip() for cell in row.strip("|").split("|")]
     assert cells[1:3] == ["2", "300"]
-    assert float(cells[5]) > 0  # subgoal distance, from progress.csv
+    assert 0 <= float(cells[4]) <= 1  # training success, from the monitor files
+    assert float(cells[6]) > 0  # subgoal distance, from progress.csv
     assert f"Figure: {out / 'learning.png'}" in rerun.stdout and (out / "learning.png").exists()
     csv = (out / "learning.csv").read_text().splitlines()
-    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value" and len(csv) == 1 + 2 * 2
+    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success" and len(csv) == 1 + 2 * 2
     seeds = [out / "default" / f"seed_{seed}" for seed in (0, 1)]
     fig = plot.plot_success(seeds, ["hier"], [ENV_ID])
     np.testing.assert_array_equal(fig.axes[0].get_lines()[0].get_xdata(), [150, 300])
@@ -118,14 +119,31 @@ def test_the_report_and_plot_py_read_the_runs_alike(resumed):
     assert not list(out.rglob("BENCHMARKS.md"))
 
 
+def write_monitor(folder: Path, lengths: list[int], successes: list[float]) -> None:
+    """An SB3 monitor file with the is_success column, as the zoo's envs write it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    episodes = enumerate(zip(lengths, successes, strict=True))
+    rows = [f"-1.0,{length},{index}.0,{success}" for index, (length, success) in episodes]
+    (folder / "0.monitor.csv").write_text("\n".join(['#{"t_start": 0.0, "env_id": "x"}', "r,l,t,is_success", *rows]) + "\n")
+
+
 def write_run(
-    out: Path, name: str, env_id: str, seed: int, successes: list[float], hierarchical: bool, finished: bool = True
+    out: Path,
+    name: str,
+    env_id: str,
+    seed: int,
+    successes: list[float],
+    hierarchical: bool,
+    finished: bool = True,
+    training_successes: list[float] | None = None,
 ) -> None:
     """A zoo run folder of ``<algo>[-<variant>]`` as a benchmark leaves it: evaluations every 1,000 steps, progress.csv
-    for a hierarchical algorithm, result.json once finished."""
+    for a hierarchical algorithm, result.json once finished, and a monitor file of 500-step training episodes."""
     algo, _, variant = name.partition("-")
     run = out / (variant or "default") / f"seed_{seed}" / algo / f"{env_id}_1"
     run.mkdir(parents=True)
+    if training_successes is not None:
+        write_monitor(run, [500] * len(training_successes), training_successes)
     if finished:
         (run / "result.json").write_text("{}")
     steps = 1000 * np.arange(1, len(successes) + 1)
@@ -147,7 +165,8 @@ def test_report_per_task(tmp_path, monkeypatch):
     envs = [ENV_ID, "FetchPush-v4"]
     for env_id in envs:
         for seed in (0, 1):
-            write_run(tmp_path, "dipper", env_id, seed, [0.0, 0.5, 1.0], hierarchical=True)
+            training = [0, 0, 0, 1, 1, 1]
+            write_run(tmp_path, "dipper", env_id, seed, [0.0, 0.5, 1.0], hierarchical=True, training_successes=training)
             write_run(tmp_path, "sac", env_id, seed, [0.0, 0.25, 0.5], hierarchical=False)
     write_run(tmp_path, "dipper-no-plan", ENV_ID, 0, [0.0, 0.25, 0.25], hierarchical=True)
     # A seed still running: the curves stop at the evaluations every seed has.
@@ -170,15 +189,17 @@ def test_report_per_task(tmp_path, monkeypatch):
     rows = {line.split(" | ")[0].strip("| "): line for line in tables[ENV_ID].splitlines()[2:]}
     assert list(rows) == ["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"]
     assert rows["DIPPER"].startswith("| DIPPER | 2 | 3,000 |")
-    assert rows["DIPPER"].endswith("| 1.00 +- 0.00 | 2,000 | 1.00 | -3.00 |")
-    assert rows["DIPPER (no-plan)"].endswith("| 1 | 3,000 | 0.25 +- 0.00 | not reached | 1.00 | -3.00 |")
-    assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | 3,000 | - | - |")
-    assert rows["HIER"].startswith("| HIER | 2 (1 partial) | 2,000 | 0.25 +- 0.25 | not reached | 1.25 |")
+    # Training success: the last 100 training episodes finished by the last evaluation (3 of 6 succeeded).
+    assert rows["DIPPER"].endswith("| 1.00 +- 0.00 | 0.50 | 2,000 | 1.00 | -3.00 |")
+    assert rows["DIPPER (no-plan)"].endswith("| 1 | 3,000 | 0.25 +- 0.00 | - | not reached | 1.00 | -3.00 |")
+    assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | - | 3,000 | - | - |")
+    assert rows["HIER"].startswith("| HIER | 2 (1 partial) | 2,000 | 0.25 +- 0.25 | - | not reached | 1.25 |")
     assert len(tables["FetchPush-v4"].splitlines()) == 2 + 2
     csv = (tmp_path / "report.csv").read_text().splitlines()
-    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value"
+    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success"
     assert {line.split(",")[0] for line in csv[1:]} == set(envs)
-    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000" in csv
+    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000," in csv
+    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000" in csv
     assert figure == tmp_path / "figures" / "report.png" and figure.exists()
     lines = [[line.get_label() for line in ax.get_lines()] for ax in drawn[0].axes]
     assert lines == [["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"], ["DIPPER", "SAC+HER"]]

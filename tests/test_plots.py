@@ -170,3 +170,15 @@ def test_hierarchical_metrics_from_a_benchmark_csv(tmp_path):
     distance_axis, value_axis = figure.axes[:2]
     assert [line.get_label() for line in distance_axis.get_lines()] == ["DIPPER"]
     np.testing.assert_allclose(value_axis.get_lines()[0].get_ydata()[[0, -1]], [-35.0, -25.0])
+
+
+def test_training_success_reads_every_part_of_a_paused_run_in_step_order(tmp_path):
+    from tests.test_benchmark import write_monitor
+
+    write_monitor(tmp_path / "part_1", [100, 100], [0, 1])
+    write_monitor(tmp_path / "part_2", [100], [0])
+    write_monitor(tmp_path, [50], [1])
+    steps, success = plot.training_success_curve(tmp_path, window=2)
+    np.testing.assert_array_equal(steps, [100, 200, 300, 350])
+    np.testing.assert_allclose(success, [0.0, 0.5, 0.5, 0.5])
+    assert plot.training_success_curve(tmp_path / "part_1" / "missing") is None

@@ -145,6 +145,8 @@ PROTOCOLS: dict[str, dict[str, Any]] = {
 }
 # Logged by the option layer of hierarchical algorithms (``rollout/<key>`` in progress.csv); read at each evaluation.
 OPTION_METRICS = ("subgoal_distance", "low_value")
+# The training episodes' success over the last 100 episodes, from the monitor files: the authors' "train success rate".
+TRAINING_SUCCESS = "train_success"
 
 
 # ------------------------------------------------------------------------------------------------------------- report
@@ -482,7 +484,7 @@ def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves |
     logged at or before its step.
     """
     algo, _, variant = name.partition("-")
-    found, done, curves, logs = [], [], [], []
+    found, done, curves, logs, last_runs = [], [], [], [], []
     for seed in seeds:
         runs = plot.zoo_runs(seed_folder(out, variant or None, seed), algo, env_id)
         curve = plot.evaluation_curve(runs[-1]) if runs else None
@@ -491,6 +493,7 @@ def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves |
             done.append(finished(runs[-1]))
             curves.append(curve)
             logs.append(plot.load_progress(runs[-1]))
+            last_runs.append(runs[-1])
     if not curves:
         return None
     steps, success = plot.align(curves)
@@ -498,13 +501,19 @@ def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves |
     for key in OPTION_METRICS:
         logged = [plot.metric_curve(log, f"rollout/{key}") if log is not None else None for log in logs]
         metrics[key] = np.array([[plot.value_at(curve, step) for step in steps] for curve in logged])
+    training = [plot.training_success_curve(run) for run in last_runs]
+    metrics[TRAINING_SUCCESS] = np.array([[plot.value_at(curve, step) for step in steps] for curve in training])
     return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics)
 
 
 def final_mean(curves: Curves, key: str) -> str:
-    """Mean over seeds of a metric at the last evaluation, or a dash where the algorithm does not log it."""
+    """Mean over seeds of a metric at the last evaluation, or a dash where the algorithm does not log it; the number
+    of seeds when only some of them have it."""
     final = curves.metrics[key][:, -1]
-    return "-" if np.isnan(final).all() else f"{np.nanmean(final):.2f}"
+    if np.isnan(final).all():
+        return "-"
+    measured = int(np.count_nonzero(~np.isnan(final)))
+    return f"{np.nanmean(final):.2f}" + (f" ({measured} of {len(final)} seeds)" if measured < len(final) else "")
 
 
 def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Curves], list[str]]:
@@ -519,7 +528,7 @@ def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tu
         curves[name] = run_curves
         for index, seed in enumerate(run_curves.seeds):
             for step_index, step in enumerate(run_curves.steps):
-                metrics = [run_curves.metrics[key][index, step_index] for key in OPTION_METRICS]
+                metrics = [run_curves.metrics[key][index, step_index] for key in (*OPTION_METRICS, TRAINING_SUCCESS)]
                 values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
                 csv_rows.append(f"{env_id},{name},{seed},{int(step)},{run_curves.success[index, step_index]:.4f},{values}")
         final = run_curves.success[:, -1]
@@ -529,11 +538,13 @@ def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tu
         runs = f"{len(run_curves.seeds)}" + (f" ({unfinished} partial)" if unfinished else "")
         rows.append(
             f"| {label(name)} | {runs} | {int(run_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
-            f"{to_half} | {final_mean(run_curves, 'subgoal_distance')} | {final_mean(run_curves, 'low_value')} |"
+            f"{final_mean(run_curves, TRAINING_SUCCESS)} | {to_half} | {final_mean(run_curves, 'subgoal_distance')} | "
+            f"{final_mean(run_curves, 'low_value')} |"
         )
     table = (
-        "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | steps to 50 % (mean curve) | "
-        "subgoal distance there | lower value there |\n|---|---|---|---|---|---|---|\n"
+        "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | training success there (last 100 "
+        "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there |\n"
+        "|---|---|---|---|---|---|---|---|\n"
     )
     return table + "\n".join(rows), curves, csv_rows
 
@@ -545,7 +556,7 @@ def report(
 
     :param names: the runs to report, ``<algo>`` or ``<algo>-<variant>``
     """
-    tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join(OPTION_METRICS)]
+    tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join((*OPTION_METRICS, TRAINING_SUCCESS))]
     for env_id in envs:
         tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds)
         csv_rows += rows
@@ -625,7 +636,8 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
         f"{args.eval_freq:,} primitive steps (rl-zoo3's EvalCallback); runs: `sb3-dipper-zoo train` with each task's "
         f"entry of `hyperparams/<algo>.yml`{f' and `-params {overrides}`' if overrides else ''}. Subgoal distance and "
         "lower value: as last logged to `progress.csv` at or before the last evaluation, the mean over the last 100 "
-        "options (hierarchical algorithms)."
+        "options (hierarchical algorithms). Training success: the stochastic policy's training episodes (monitor "
+        "files), the last 100 finished by the last evaluation, as the authors' code logs its train success rate."
     )
     tables_text = "\n\n".join(f"`{env_id}`\n\n{table}" for env_id, table in tables.items())
     if args.write:

@@ -119,6 +119,30 @@ def success_curve(run: Path, window: int = 100) -> Curve:
     return steps, success
 
 
+def training_success_curve(run: Path, window: int = 100) -> Curve | None:
+    """Success rate of the training episodes (the policy as it acts while learning, stochastic), over the last
+    ``window`` episodes, against primitive steps: the authors' "train success rate". None without monitor files.
+
+    A run trained in parts (``sb3-dipper-zoo train --pause-after-minutes``) has each earlier part's monitor files in
+    ``part_<k>/``: the parts are read in order, each continuing the previous one's step count.
+    """
+    folders = [*sorted(run.glob("part_*"), key=lambda part: int(part.name.split("_")[1])), run]
+    lengths, successes = [], []
+    for folder in folders:
+        try:
+            episodes = load_results(str(folder))
+        except LoadMonitorResultsError:
+            continue
+        if "is_success" in episodes and not episodes.empty:
+            lengths.append(episodes["l"].to_numpy(dtype=float))
+            successes.append(episodes["is_success"].to_numpy(dtype=float))
+    if not lengths:
+        return None
+    steps = np.cumsum(np.concatenate(lengths))
+    success = pd.Series(np.concatenate(successes)).rolling(window, min_periods=1).mean().to_numpy()
+    return steps, success
+
+
 def final_success(run: Path, window: int = 100) -> float:
     """The last point of a run's success curve: its last evaluation, or its last ``window`` training episodes."""
     return float(success_curve(run, window)[1][-1])
