@@ -144,10 +144,6 @@ def test_higher_update_on_real_steps_equals_the_padded_update(trained_dipper, mo
     """Log-probabilities and the lower value gaps on the real steps only: the same DIPPER loss, preferred-side NLL,
     value gap and policy gradient as the straightforward update over every (padded) step of the pairs."""
     model = trained_dipper
-    lower_actor = model.lower.actor
-    # A lower policy without sampling noise (std e^-20): the value gaps no longer depend on which rows draw noise.
-    monkeypatch.setattr(lower_actor.log_std.weight, "data", th.zeros_like(lower_actor.log_std.weight))
-    monkeypatch.setattr(lower_actor.log_std.bias, "data", th.full_like(lower_actor.log_std.bias, -20.0))
     with th.no_grad():
         for parameter in model._value_snapshot.parameters():
             parameter.add_(0.1 * th.randn_like(parameter))
@@ -160,6 +156,7 @@ def test_higher_update_on_real_steps_equals_the_padded_update(trained_dipper, mo
     actions = th.as_tensor(pairs.reached_actions, device=model.device)
     mask, labels = th.as_tensor(pairs.mask), th.as_tensor(pairs.labels)
     log_probs = model.policy.log_prob(flat_obs, actions.reshape(-1, actions.shape[-1])).reshape(mask.shape)
+    th.manual_seed(3)
     with th.no_grad():
         low_obs = model._pair_low_obs(pairs, pairs.reached_actions)
         gaps = sac_value_gap(model.lower, model._value_snapshot, low_obs).reshape(mask.shape)
@@ -172,12 +169,33 @@ def test_higher_update_on_real_steps_equals_the_padded_update(trained_dipper, mo
 
     model.policy.load_state_dict(start[0])
     model.policy.actor.optimizer.load_state_dict(start[1])
+    th.manual_seed(3)
     model._train_high_level()
     logged = model.logger.name_to_value
     assert logged["train/high_dpo_loss"] == pytest.approx(dpo.item(), abs=TOLERANCE)
     assert logged["train/high_nll"] == pytest.approx(nll.item(), abs=TOLERANCE)
     assert logged["train/high_value_gap"] == pytest.approx(expected_gap, abs=TOLERANCE) and expected_gap != 0.0
     assert_all_close(gradients(model.policy.actor), expected_gradients)
+
+
+def test_value_gaps_on_real_steps_keep_the_random_stream_of_every_step(trained_dipper):
+    """The lower action sample of the value gaps draws noise for the padded steps too: the gaps at the real steps are
+    those of evaluating every step and the random numbers drawn afterwards are exactly the same, so seeded runs repeat
+    up to float rounding."""
+    model = trained_dipper
+    pairs = model.preferences.sample(model.pairs_per_batch, np.random.default_rng(1))
+    mask = th.as_tensor(pairs.mask)
+    assert 0 < pairs.mask.sum() < pairs.mask.size, "the pairs have padded steps"
+    th.manual_seed(4)
+    with th.no_grad():
+        low_obs = model._pair_low_obs(pairs, model._pair_actions(pairs))
+        every_step = sac_value_gap(model.lower, model._value_snapshot, low_obs).reshape(mask.shape)
+    next_draw = th.rand(4)
+    th.manual_seed(4)
+    real_steps = model._value_gaps(pairs, mask)
+    th.testing.assert_close(real_steps[mask], every_step[mask], atol=TOLERANCE, rtol=TOLERANCE)
+    assert th.equal(real_steps[~mask], th.zeros(int((~mask).sum())))
+    assert th.equal(th.rand(4), next_draw)
 
 
 def test_the_updates_benchmark_prints_ratios_to_sb3_sac(trained_dipper, monkeypatch, capsys):

@@ -234,12 +234,21 @@ def sac_state_value(sac: SAC, obs: dict[str, th.Tensor], critic: th.nn.Module | 
     return q_values - entropy_coef * log_prob.reshape(-1)
 
 
-def sac_value_gap(sac: SAC, snapshot_critic: th.nn.Module, obs: dict[str, th.Tensor]) -> th.Tensor:
+def sac_value_gap(
+    sac: SAC, snapshot_critic: th.nn.Module, obs: dict[str, th.Tensor], noise: th.Tensor | None = None
+) -> th.Tensor:
     """``V^L(s, g) - V^L_m(s, g)``: the value under an older critic minus the value under the current one, ``(N,)``.
 
     Both use one shared action sample of the current lower policy, so the entropy terms of the two values cancel.
+
+    :param noise: the standard normal noise of that sample, ``(N, action_dim)``, as SB3's squashed Gaussian uses it
+        (``tanh(mean + noise * std)``); default: SB3's sampler draws it
     """
-    actions, _ = sac.actor.action_log_prob(obs)
+    if noise is None:
+        actions, _ = sac.actor.action_log_prob(obs)
+    else:
+        mean_actions, log_std, _ = sac.actor.get_action_dist_params(obs)
+        actions = th.tanh(mean_actions + noise * log_std.exp())
     old = th.cat(snapshot_critic(obs, actions), dim=1).min(dim=1).values
     new = th.cat(sac.critic(obs, actions), dim=1).min(dim=1).values
     return old - new

@@ -476,7 +476,10 @@ class DIPPER(HierarchicalAlgorithm):
         every loss term masks out, so the lower networks evaluate only the real steps), no gradient."""
         with th.no_grad():
             low_obs = self._pair_low_obs(pairs, self._pair_actions(pairs), real_only=True)
-            return at_real_steps(sac_value_gap(self.lower, self._value_snapshot, low_obs), mask)
+            # The sample's noise is drawn for every step, padding included, as sampling every step would draw it: the
+            # random stream, and so a seeded run, stays the one of evaluating the padded batch.
+            noise = th.empty((mask.numel(), self.lower.actor.action_dist.action_dim), device=self.device).normal_()
+            return at_real_steps(sac_value_gap(self.lower, self._value_snapshot, low_obs, noise[mask.reshape(-1)]), mask)
 
     def _refresh_value_snapshot(self) -> None:
         """Once the lower critic is ``value_steps`` updates past the snapshot, the current critic becomes the snapshot."""
