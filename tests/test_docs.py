@@ -43,13 +43,14 @@ def documented_names(docs: Path | None = None) -> set[str]:
 
 
 def algorithm_packages() -> list[str]:
-    """The packages of the algorithms ``sb3_dipper`` exports (``sb3_dipper.dipper``, ...), and the envs package."""
+    """The packages of the algorithms ``sb3_dipper`` exports (``sb3_dipper.dipper``, ...), the envs and the labelling
+    package."""
     packages = {
         getattr(sb3_dipper, name).__module__.rsplit(".", 1)[0]
         for name in sb3_dipper.__all__
         if isinstance(getattr(sb3_dipper, name), type) and issubclass(getattr(sb3_dipper, name), BaseAlgorithm)
     }
-    return [*sorted(packages), "sb3_dipper.envs"]
+    return [*sorted(packages), "sb3_dipper.envs", "sb3_dipper.labelling"]
 
 
 def resolve(dotted_name: str) -> object:
