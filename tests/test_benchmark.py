@@ -230,6 +230,7 @@ def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys)
     assert "<!-- partial:start -->" in section and "| DIPPER | 1 (1 partial) | 2,000 | 0.50 +- 0.00 |" in section
     assert "![success curves](docs/benchmarks/partial.png)" in section
     assert (repository / "docs" / "benchmarks" / "partial.png").exists()
+    assert (repository / "docs" / "benchmarks" / "partial.csv").read_text() == (out / "partial.csv").read_text()
 
     monkeypatch.setattr(sys, "argv", [*argv, "--benchmarks-md", str(tmp_path / "elsewhere.md")])
     with pytest.raises(SystemExit):

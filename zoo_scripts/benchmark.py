@@ -42,9 +42,9 @@ reached, the success there as mean +- std over seeds, the steps where the mean s
 hierarchical algorithms the subgoal distance and lower value last logged at or before that step), the CSV
 ``OUT/<name>.csv`` with one row per seed and evaluation, and a figure with a panel per task (``plot.draw_success``).
 The tables are printed and the figure written to ``OUT/<name>.png``; only ``--write`` puts the section ``<name>`` into
-BENCHMARKS.md (``--benchmarks-md``) and the figure into docs/benchmarks/ (``--figures-dir``). rl-zoo3 evaluates every
-``--eval-freq`` steps, so a budget that is not a multiple of it ends with its last evaluation up to ``--eval-freq``
-steps before the end.
+BENCHMARKS.md (``--benchmarks-md``) and the figure and the CSV into docs/benchmarks/ (``--figures-dir``). rl-zoo3
+evaluates every ``--eval-freq`` steps, so a budget that is not a multiple of it ends with its last evaluation up to
+``--eval-freq`` steps before the end.
 
 Runs execute locally, ``--workers`` zoo processes at a time, or with ``--ray-address`` as Ray tasks of one CPU each on a
 running cluster (``ray start --head`` on one machine, ``ray start --address HEAD:6379`` on the others), each starting
@@ -645,6 +645,8 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
         image = f"![success curves]({os.path.relpath(figure, markdown.resolve().parent)})"
         command = "python zoo_scripts/benchmark.py learning " + " ".join(sys.argv[2:])
         write_section(args.name, f"{description}\n\n{tables_text}\n\n{image}", command, markdown)
+        # The CSV behind the table goes next to its figure, to be committed with it.
+        shutil.copyfile(out / f"{args.name}.csv", figure.with_suffix(".csv"))
     print(f"{description}\n\n{tables_text}\n\nFigure: {figure}\nCSV: {out / f'{args.name}.csv'}")
     return tables, curves
 
