@@ -405,10 +405,16 @@ def replace_folder(staging: Path, target: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def saved_steps(model_zip: Path) -> tuple[int, int]:
+    """``num_timesteps`` and ``_total_timesteps`` of a saved model, from the JSON part of its zip (no pickle)."""
+    with zipfile.ZipFile(model_zip) as archive:
+        data = json.loads(archive.read("data"))
+    return int(data["num_timesteps"]), int(data.get("_total_timesteps", 0))
+
+
 def checkpoint_steps(run_folder: Path) -> int:
-    """The primitive steps the run's resume checkpoint has trained (from the JSON part of the model zip, no pickle)."""
-    with zipfile.ZipFile(run_folder / RESUME_FOLDER / RESUME_MODEL) as archive:
-        return int(json.loads(archive.read("data"))["num_timesteps"])
+    """The primitive steps the run's resume checkpoint has trained."""
+    return saved_steps(run_folder / RESUME_FOLDER / RESUME_MODEL)[0]
 
 
 def set_aside_part(run_folder: Path) -> None:

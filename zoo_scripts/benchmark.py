@@ -85,10 +85,10 @@ import statistics
 import subprocess
 import sys
 import time
-import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -102,7 +102,7 @@ import plot
 from configs import make_env, make_model, torch_threads
 from plot import LABELS, label
 
-from sb3_dipper.zoo import RESUME_FOLDER
+from sb3_dipper.zoo import RESUME_FOLDER, RESUME_MODEL, saved_steps
 
 REPO = Path(__file__).resolve().parent.parent
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
@@ -189,18 +189,23 @@ def throughput_models(env_id: str, net_arch: list[int]) -> dict[str, Any]:
     return models
 
 
-def interleaved_seconds(models: dict[str, Any], steps: int, repeats: int) -> dict[str, list[float]]:
-    """Seconds of each of ``repeats`` chunks of ``steps`` training steps per model, the models in a new random order
-    every round, so that every model meets the machine's changing load alike."""
-    seconds: dict[str, list[float]] = {algo: [] for algo in models}
-    order = list(models)
+def interleaved_seconds(chunks: Mapping[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
+    """Seconds of each of ``repeats`` calls of every chunk of work, the chunks in a new random order every round, so
+    that every one meets the machine's changing load alike."""
+    seconds: dict[str, list[float]] = {name: [] for name in chunks}
+    order = list(chunks)
     for _ in range(repeats):
         random.shuffle(order)
-        for algo in order:
+        for name in order:
             start = time.perf_counter()
-            models[algo].learn(steps, reset_num_timesteps=False)
-            seconds[algo].append(time.perf_counter() - start)
+            chunks[name]()
+            seconds[name].append(time.perf_counter() - start)
     return seconds
+
+
+def training_chunks(models: dict[str, Any], steps: int) -> dict[str, Callable[[], Any]]:
+    """``steps`` more training steps of each model, as chunks for :func:`interleaved_seconds`."""
+    return {name: partial(model.learn, steps, reset_num_timesteps=False) for name, model in models.items()}
 
 
 def run_throughput(args: argparse.Namespace) -> None:
@@ -208,7 +213,7 @@ def run_throughput(args: argparse.Namespace) -> None:
     models = throughput_models(args.env, args.net_arch)
     for model in models.values():
         model.learn(THROUGHPUT_LOWER["learning_starts"] + args.steps)
-    seconds = interleaved_seconds(models, args.steps, args.repeats)
+    seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
     seconds = {algo: [chunk / args.steps for chunk in chunks] for algo, chunks in seconds.items()}
     per_step = {algo: statistics.median(values) for algo, values in seconds.items()}
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
@@ -251,7 +256,7 @@ def run_profiles(args: argparse.Namespace) -> None:
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
             model.learn(int(getattr(model, "learning_starts", 0)) + args.steps)
-        seconds = interleaved_seconds(models, args.steps, args.repeats)
+        seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
         rates = {algo: args.steps / statistics.median(values) for algo, values in seconds.items()}
         baseline = rates.get("sac")
         for algo, rate in rates.items():
@@ -292,6 +297,11 @@ def update_steps(model: Any) -> dict[str, Any]:
     }
 
 
+def repeat_call(function: Callable[[], Any], times: int) -> None:
+    for _ in range(times):
+        function()
+
+
 def run_updates(args: argparse.Namespace) -> None:
     """Milliseconds per training update at a task's DIPPER CPU profile, and their ratios to SB3's SAC update.
 
@@ -302,17 +312,9 @@ def run_updates(args: argparse.Namespace) -> None:
     th.set_num_threads(torch_threads())
     model = make_model("dipper", args.env, seed=0)[0]
     model.learn(int(getattr(model, "learning_starts", 0)) + args.warmup)
-    steps = update_steps(model)
-    seconds: dict[str, list[float]] = {name: [] for name in steps}
-    order = list(steps)
-    for _ in range(args.repeats):
-        random.shuffle(order)
-        for name in order:
-            start = time.perf_counter()
-            for _ in range(args.updates):
-                steps[name]()
-            seconds[name].append((time.perf_counter() - start) / args.updates)
-    per_update = {name: statistics.median(values) for name, values in seconds.items()}
+    chunks = {name: partial(repeat_call, update, args.updates) for name, update in update_steps(model).items()}
+    seconds = interleaved_seconds(chunks, args.repeats)
+    per_update = {name: statistics.median(values) / args.updates for name, values in seconds.items()}
     baseline = per_update["SB3 SAC.train, 1 gradient step"]
     rows = [f"| {name} | {value * 1e3:.2f} | {value / baseline:.2f} |" for name, value in per_update.items()]
     print(
@@ -329,7 +331,6 @@ def run_updates(args: argparse.Namespace) -> None:
 DEFAULT_VARIANT = "default"  # the folder of the runs without --variant
 RESULT = "result.json"
 PARTS = "parts.json"  # the training time of a paused run's parts
-RESUME_MODEL = Path(RESUME_FOLDER) / "model.zip"
 
 
 def run_name(algo: str, variant: str | None) -> str:
@@ -389,15 +390,10 @@ def finished(run: Path) -> bool:
 
 
 def model_steps(run: Path) -> tuple[int, int] | None:
-    """``num_timesteps`` and ``_total_timesteps`` of the run's final model, read from the JSON part of its zip (no
-    pickle), or None before it has one."""
+    """``num_timesteps`` and ``_total_timesteps`` of the run's final model, or None before it has one."""
     env_name = run.name.rsplit("_", 1)[0]  # the zoo names the run folder <env>_<n> and the model <env>.zip
     model = run / f"{env_name}.zip"
-    if not model.exists():
-        return None
-    with zipfile.ZipFile(model) as archive:
-        data = json.loads(archive.read("data"))
-    return int(data["num_timesteps"]), int(data["_total_timesteps"])
+    return saved_steps(model) if model.exists() else None
 
 
 def trained_to_the_end(run: Path) -> bool:
@@ -409,7 +405,7 @@ def trained_to_the_end(run: Path) -> bool:
 
 def resumable(run: Path) -> bool:
     """Whether an unfinished run was paused with a resume checkpoint (``sb3-dipper-zoo train --pause-after-minutes``)."""
-    return not finished(run) and (run / RESUME_MODEL).is_file()
+    return not finished(run) and (run / RESUME_FOLDER / RESUME_MODEL).is_file()
 
 
 def add_part_seconds(run: Path, seconds: float) -> float:
