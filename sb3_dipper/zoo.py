@@ -21,6 +21,12 @@ buffers as they were. The resumed part reseeds its random generators, so it is n
     sb3-dipper-zoo train --algo dipper --env FetchPushFixed-v0 -f logs --pause-after-minutes 80
     sb3-dipper-zoo train --algo dipper --env FetchPushFixed-v0 -f logs --resume logs/dipper/FetchPushFixed-v0_1
 
+``--label-page [HOST:]PORT`` serves the labelling page (:mod:`sb3_dipper.labelling.app`) of the run's label queue from
+the training process while it trains; the model's ``preference_source`` must send pairs to people::
+
+    sb3-dipper-zoo train --algo dipper --env PointMazeFourRooms-v0 -params "preference_source:'people:logs/labels'" \
+        --label-page 5000
+
 rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so it is
 imported only here, and only when a command runs.
 """
@@ -52,6 +58,7 @@ from sb3_dipper.dipper import DIPPER
 from sb3_dipper.dpo_flat import DPOFlat
 from sb3_dipper.hac import HAC
 from sb3_dipper.hier import HIER
+from sb3_dipper.labelling.sources import label_queue_directory
 from sb3_dipper.piper import PIPER
 from sb3_dipper.raps import RAPS
 from sb3_dipper.saga import SAGA
@@ -322,10 +329,21 @@ class RunControl:
         the run folder and stop (rl-zoo3 then saves the model as usual)
     :param resume: ``--resume RUN_FOLDER``: continue that run from its resume checkpoint, in the same folder, to the
         run's whole budget
+    :param label_page: ``--label-page [HOST:]PORT``: serve the labelling page of the model's label queue (its
+        ``preference_source`` is ``people:DIR`` or ``mixed:DIR:FRACTION``) while it trains, as ``(host, port)``
     """
 
     pause_after_minutes: float | None = None
     resume: Path | None = None
+    label_page: tuple[str, int] | None = None
+
+
+def parse_label_page(text: str) -> tuple[str, int]:
+    """``--label-page``'s ``[HOST:]PORT`` as ``(host, port)``; the host defaults to this machine only."""
+    host, _, port = text.rpartition(":")
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"--label-page takes [HOST:]PORT, for example 5000 or 0.0.0.0:5000 (0: a free port), got {text!r}")
+    return host or "127.0.0.1", int(port)
 
 
 def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
@@ -333,6 +351,7 @@ def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
     parser = argparse.ArgumentParser(add_help=False, exit_on_error=False)
     parser.add_argument("--pause-after-minutes", type=float)
     parser.add_argument("--resume", type=Path)
+    parser.add_argument("--label-page")
     try:
         flags, rest = parser.parse_known_args(argv)
     except argparse.ArgumentError as error:
@@ -344,7 +363,8 @@ def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
             f"--resume {flags.resume}: no resume checkpoint {flags.resume / RESUME_FOLDER / RESUME_MODEL}. Resume a run "
             "folder that a run started with --pause-after-minutes paused in."
         )
-    return RunControl(flags.pause_after_minutes, flags.resume), rest
+    label_page = None if flags.label_page is None else parse_label_page(flags.label_page)
+    return RunControl(flags.pause_after_minutes, flags.resume, label_page), rest
 
 
 class PauseCheckpointCallback(BaseCallback):
@@ -493,6 +513,28 @@ def learn_resumed(
         shutil.rmtree(run_folder / RESUME_FOLDER)
 
 
+def start_label_page(model: BaseAlgorithm, host: str, port: int) -> Any:
+    """``--label-page``: serve the labelling page of ``model``'s label queue from this process while it trains.
+
+    :return: the running server (``shutdown()`` stops it)
+    """
+    directory = label_queue_directory(getattr(model, "preference_source", None))
+    if directory is None:
+        raise ValueError(
+            f"--label-page: {type(model).__name__}'s preference_source sends no pairs to people, so there is nothing "
+            "to label. Train with -params \"preference_source:'people:DIR'\" (or 'mixed:DIR:FRACTION'), or leave "
+            "out --label-page."
+        )
+    try:
+        from sb3_dipper.labelling.app import serve_in_background
+    except ImportError as error:
+        raise ImportError(f"--label-page needs the labelling page's packages: pip install -e '.[label]' ({error})") from error
+    server = serve_in_background(directory, host, port)
+    # The only way to tell the person at the terminal where the page is (rl-zoo3 prints its own progress too).
+    print(f"Labelling page of {directory}: http://{host}:{server.server_port}", flush=True)
+    return server
+
+
 def _install_run_folder_claim(control: RunControl | None = None) -> None:
     """Make rl-zoo3's train create each run's folder with :func:`claim_run_folder` and obey ``control``.
 
@@ -543,10 +585,15 @@ def _install_run_folder_claim(control: RunControl | None = None) -> None:
             return experiment
 
         def learn(self, model: BaseAlgorithm) -> None:
-            if run_control.resume is None:
-                super().learn(model)
-            else:
-                learn_resumed(model, self.n_timesteps, self.callbacks, self.log_interval, run_control.resume)
+            page = None if run_control.label_page is None else start_label_page(model, *run_control.label_page)
+            try:
+                if run_control.resume is None:
+                    super().learn(model)
+                else:
+                    learn_resumed(model, self.n_timesteps, self.callbacks, self.log_interval, run_control.resume)
+            finally:
+                if page is not None:
+                    page.shutdown()
 
     rl_zoo3.train.ExperimentManager = OwnRunFolderExperimentManager  # type: ignore[misc]
 

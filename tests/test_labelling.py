@@ -26,7 +26,13 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.labelling.app import LabellingServer, create_app
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
-from sb3_dipper.labelling.sources import NoisyLabeler, QueuedPreferenceSource, preference_source_from
+from sb3_dipper.labelling.sources import (
+    NoisyLabeler,
+    QueuedPreferenceSource,
+    label_queue_directory,
+    preference_source_from,
+)
+from sb3_dipper.zoo import RunControl, split_run_control
 from tests.conftest import any_tiny_model, short_maze
 
 REPO = Path(__file__).resolve().parent.parent
@@ -391,3 +397,94 @@ def test_fetch_pairs_are_drawn_as_frame_strips():
     env.close()
     for png in pictures:
         assert png.startswith(b"\x89PNG") and len(png) > 10_000
+
+
+# ---------------------------------------------------------------------------------------------------- the page beside training
+
+
+@pytest.mark.parametrize(
+    ("spec", "directory"),
+    [
+        ("people:logs/labels", "logs/labels"),
+        ("mixed:logs/labels:0.3", "logs/labels"),
+        ({"kind": "mixed", "directory": "d", "person_fraction": 0.5}, "d"),
+        (QueuedPreferenceSource("q"), "q"),
+        ("noisy:0.1", None),
+        ("primitive", None),
+        (None, None),
+        (NoisyLabeler(0.2), None),
+    ],
+)
+def test_the_label_queue_of_a_preference_source(spec, directory):
+    assert label_queue_directory(spec) == directory
+
+
+@pytest.mark.parametrize("text", ["", "host:", "50OO", "localhost:70000", "-1"])
+def test_a_bad_label_page_address_names_the_flag(text):
+    with pytest.raises(ValueError, match="--label-page takes"):
+        split_run_control(["--label-page", text])
+
+
+def test_label_page_flag_parses_host_and_port():
+    assert split_run_control(["--label-page", "5001", "--algo", "dipper"]) == (
+        RunControl(label_page=("127.0.0.1", 5001)),
+        ["--algo", "dipper"],
+    )
+    assert split_run_control(["--label-page", "0.0.0.0:0"])[0].label_page == ("0.0.0.0", 0)
+
+
+def zoo_train(tmp_path: Path, *params: str, label_page: str = "127.0.0.1:0") -> subprocess.Popen:
+    command = [sys.executable, "-m", "sb3_dipper.zoo", "train", "--algo", "dipper", "--env", "PointMazeFourRooms-v0"]
+    command += ["-f", str(tmp_path / "logs"), "--seed", "0", "-n", "200000", "--eval-freq", "-1", "--label-page", label_page]
+    command += ["-params", "learning_starts:200", *params]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
+
+
+def test_training_serves_the_labelling_page_and_uses_its_labels(tmp_path):
+    """``--label-page``: the page runs inside the training process; a label given there reaches that training."""
+    directory = tmp_path / "labels"
+    training = zoo_train(tmp_path, f"preference_source:'people:{directory}'", "n_preference_pairs:8")
+    try:
+        lines: list[str] = []
+        assert training.stdout is not None
+        for line in training.stdout:
+            lines.append(line)
+            if line.startswith("Labelling page of "):
+                url = line.split(": ", 1)[1].strip() + "/"
+                break
+        else:
+            pytest.fail("".join(lines[-40:]))
+        pair_id = None
+        for _ in range(600):  # training queues pairs once its first higher-level trajectories end
+            pair_id = json.loads(urllib.request.urlopen(url + "api/next?client=test", timeout=5).read())["pair_id"]
+            if pair_id is not None:
+                break
+            time.sleep(0.2)
+        assert pair_id is not None, "training queued no pair in 2 minutes"
+        request = urllib.request.Request(
+            url + "api/label",
+            data=json.dumps({"pair_id": pair_id, "client": "test", "answer": "left"}).encode(),
+            headers={"Content-Type": "application/json"},
+        )
+        assert json.loads(urllib.request.urlopen(request, timeout=5).read())["ok"]
+        queue = LabelQueue(directory)
+        assert queue.answers().as_dict() == {pair_id: 1.0}
+        # Training collects the label on its own (it never waits for it) and records the hand-over.
+        for _ in range(600):
+            if pair_id in queue.read_handed()["pair_id"].tolist():
+                break
+            time.sleep(0.2)
+        handed = queue.read_handed()
+        assert handed["pair_id"].tolist() == [pair_id] and handed["label"].tolist() == [1.0]
+        assert handed["labeller"].tolist() == [PERSON]
+    finally:
+        training.kill()
+        training.wait(timeout=30)
+
+
+def test_label_page_without_people_to_ask_is_refused_before_training(tmp_path):
+    training = zoo_train(tmp_path, "n_preference_pairs:8")
+    output, _ = training.communicate(timeout=300)
+    assert training.returncode != 0
+    assert "--label-page: DIPPER's preference_source sends no pairs to people" in output
+    assert "total_timesteps" not in output  # refused before the first step

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 from flask import Flask, Response, abort, jsonify, request
+from werkzeug.serving import BaseWSGIServer, make_server
 
 from sb3_dipper.common.files import write_atomically
 from sb3_dipper.labelling.queue import ANSWERS, LabelQueue
@@ -239,6 +240,23 @@ def create_app(directory: str | Path, show_skipped: bool = False) -> Flask:
         return Response(server.image(pair_id, side), mimetype="image/png")
 
     return app
+
+
+def serve_in_background(directory: str | Path, host: str = "127.0.0.1", port: int = 5000) -> BaseWSGIServer:
+    """Serve the labelling page of ``directory`` from a daemon thread of this process (training's, for example).
+
+    The queue directory is created if training has not queued a pair yet; the page then waits for pairs. A port that
+    is taken raises ``OSError`` here, before anything else starts.
+
+    :param directory: the label queue directory
+    :param host: the address to serve on
+    :param port: the port to serve on (0: a free port, then read ``server.server_port``)
+    :return: the running server: ``server.shutdown()`` stops it
+    """
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    server = make_server(host, port, create_app(directory), threaded=True)
+    threading.Thread(target=server.serve_forever, name="labelling-page", daemon=True).start()
+    return server
 
 
 def main(argv: list[str] | None = None) -> None:

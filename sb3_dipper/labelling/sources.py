@@ -256,6 +256,20 @@ def preference_source_from(
     return spec
 
 
+def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:
+    """The label queue directory a ``preference_source`` sends pairs to people through (``None``: no people).
+
+    :param spec: :data:`SPEC_HELP`
+    """
+    if isinstance(spec, str) and spec != "primitive":
+        spec = _parse_spec(spec)
+    if isinstance(spec, dict) and spec.get("kind") in ("people", "mixed") and "directory" in spec:
+        return str(spec["directory"])
+    if isinstance(spec, QueuedPreferenceSource):
+        return spec.directory
+    return None
+
+
 def _parse_spec(text: str) -> dict[str, Any]:
     kind, _, rest = text.partition(":")
     try:
