@@ -109,7 +109,8 @@ def test_the_report_and_plot_py_read_the_runs_alike(resumed):
     assert float(cells[6]) > 0  # subgoal distance, from progress.csv
     assert f"Figure: {out / 'learning.png'}" in rerun.stdout and (out / "learning.png").exists()
     csv = (out / "learning.csv").read_text().splitlines()
-    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success" and len(csv) == 1 + 2 * 2
+    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs"
+    assert len(csv) == 1 + 2 * 2
     seeds = [out / "default" / f"seed_{seed}" for seed in (0, 1)]
     fig = plot.plot_success(seeds, ["hier"], [ENV_ID])
     np.testing.assert_array_equal(fig.axes[0].get_lines()[0].get_xdata(), [150, 300])
@@ -154,8 +155,13 @@ def write_run(
     if hierarchical:
         # Logged between evaluations, and once after the last one: the value at an evaluation is the last logged by then.
         distances = [*np.linspace(2.0, 1.0, len(successes)), 9.0]
-        rows = [f"{step - 500},{distance},-3.0" for step, distance in zip([*steps, steps[-1] + 1000], distances, strict=True)]
-        header = "time/total_timesteps,rollout/subgoal_distance,rollout/low_value"
+        # DIPPER (and its variants) label pairs: 10 more between evaluations; the others log no preference pairs.
+        pairs = [f",{10 * (index + 1)}" if algo == "dipper" else "," for index in range(len(distances))]
+        rows = [
+            f"{step - 500},{distance},-3.0{labelled}"
+            for step, distance, labelled in zip([*steps, steps[-1] + 1000], distances, pairs, strict=True)
+        ]
+        header = "time/total_timesteps,rollout/subgoal_distance,rollout/low_value,train/high_preference_pairs"
         (run / "progress.csv").write_text("\n".join([header, *rows]))
 
 
@@ -190,16 +196,16 @@ def test_report_per_task(tmp_path, monkeypatch):
     assert list(rows) == ["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"]
     assert rows["DIPPER"].startswith("| DIPPER | 2 | 3,000 |")
     # Training success: the last 100 training episodes finished by the last evaluation (3 of 6 succeeded).
-    assert rows["DIPPER"].endswith("| 1.00 +- 0.00 | 0.50 | 2,000 | 1.00 | -3.00 |")
-    assert rows["DIPPER (no-plan)"].endswith("| 1 | 3,000 | 0.25 +- 0.00 | - | not reached | 1.00 | -3.00 |")
-    assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | - | 3,000 | - | - |")
+    assert rows["DIPPER"].endswith("| 1.00 +- 0.00 | 0.50 | 2,000 | 1.00 | -3.00 | 30 |")
+    assert rows["DIPPER (no-plan)"].endswith("| 1 | 3,000 | 0.25 +- 0.00 | - | not reached | 1.00 | -3.00 | 30 |")
+    assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | - | 3,000 | - | - | - |")
     assert rows["HIER"].startswith("| HIER | 2 (1 partial) | 2,000 | 0.25 +- 0.25 | - | not reached | 1.25 |")
     assert len(tables["FetchPush-v4"].splitlines()) == 2 + 2
     csv = (tmp_path / "report.csv").read_text().splitlines()
-    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success"
+    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs"
     assert {line.split(",")[0] for line in csv[1:]} == set(envs)
-    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000," in csv
-    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000" in csv
+    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000,," in csv
+    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000,30.0000" in csv
     assert figure == tmp_path / "figures" / "report.png" and figure.exists()
     lines = [[line.get_label() for line in ax.get_lines()] for ax in drawn[0].axes]
     assert lines == [["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"], ["DIPPER", "SAC+HER"]]

@@ -39,7 +39,8 @@ in the same folder and on the same evaluation grid (``parts.json`` adds up the p
 The report reads the runs on disk through ``plot.py``'s loaders (finished or not, ``--report-only`` without running
 anything): a table per task (seeds, with the unfinished ones counted as partial, the last evaluation every seed has
 reached, the success there as mean +- std over seeds, the steps where the mean success first reaches 50 %, and for
-hierarchical algorithms the subgoal distance and lower value last logged at or before that step), the CSV
+hierarchical algorithms the subgoal distance and lower value last logged at or before that step, for the
+preference-trained ones the labelled pairs in their dataset then: what a person would have labelled), the CSV
 ``OUT/<name>.csv`` with one row per seed and evaluation, and a figure with a panel per task (``plot.draw_success``).
 The tables are printed and the figure written to ``OUT/<name>.png``; only ``--write`` puts the section ``<name>`` into
 BENCHMARKS.md (``--benchmarks-md``) and the figure and the CSV into docs/benchmarks/ (``--figures-dir``). rl-zoo3
@@ -145,8 +146,13 @@ PROTOCOLS: dict[str, dict[str, Any]] = {
 }
 # Logged by the option layer of hierarchical algorithms (``rollout/<key>`` in progress.csv); read at each evaluation.
 OPTION_METRICS = ("subgoal_distance", "low_value")
+# The labelled pairs in the preference dataset (DIPPER, PIPER: ``train/high_preference_pairs``): what a person would
+# have labelled to get the result, had a person given the labels.
+PREFERENCE_PAIRS = "preference_pairs"
+PREFERENCE_PAIRS_KEY = "train/high_preference_pairs"
 # The training episodes' success over the last 100 episodes, from the monitor files: the authors' "train success rate".
 TRAINING_SUCCESS = "train_success"
+CSV_METRICS = (*OPTION_METRICS, TRAINING_SUCCESS, PREFERENCE_PAIRS)
 
 
 # ------------------------------------------------------------------------------------------------------------- report
@@ -470,7 +476,7 @@ class Curves:
     finished: list[bool]  # per seed: the run has ended (result.json); a running or cut-off run is partial
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (seeds, evaluations) success rates
-    metrics: dict[str, np.ndarray]  # every OPTION_METRICS key, (seeds, evaluations), NaN where not logged
+    metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (seeds, evaluations), NaN where not logged
 
 
 def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves | None:
@@ -499,17 +505,20 @@ def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves |
         metrics[key] = np.array([[plot.value_at(curve, step) for step in steps] for curve in logged])
     training = [plot.training_success_curve(run) for run in last_runs]
     metrics[TRAINING_SUCCESS] = np.array([[plot.value_at(curve, step) for step in steps] for curve in training])
+    pairs = [plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None for log in logs]
+    metrics[PREFERENCE_PAIRS] = np.array([[plot.value_at(curve, step) for step in steps] for curve in pairs])
     return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics)
 
 
-def final_mean(curves: Curves, key: str) -> str:
+def final_mean(curves: Curves, key: str, number_format: str = ".2f") -> str:
     """Mean over seeds of a metric at the last evaluation, or a dash where the algorithm does not log it; the number
     of seeds when only some of them have it."""
     final = curves.metrics[key][:, -1]
     if np.isnan(final).all():
         return "-"
     measured = int(np.count_nonzero(~np.isnan(final)))
-    return f"{np.nanmean(final):.2f}" + (f" ({measured} of {len(final)} seeds)" if measured < len(final) else "")
+    mean = format(np.nanmean(final), number_format)
+    return mean + (f" ({measured} of {len(final)} seeds)" if measured < len(final) else "")
 
 
 def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Curves], list[str]]:
@@ -524,7 +533,7 @@ def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tu
         curves[name] = run_curves
         for index, seed in enumerate(run_curves.seeds):
             for step_index, step in enumerate(run_curves.steps):
-                metrics = [run_curves.metrics[key][index, step_index] for key in (*OPTION_METRICS, TRAINING_SUCCESS)]
+                metrics = [run_curves.metrics[key][index, step_index] for key in CSV_METRICS]
                 values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
                 csv_rows.append(f"{env_id},{name},{seed},{int(step)},{run_curves.success[index, step_index]:.4f},{values}")
         final = run_curves.success[:, -1]
@@ -535,12 +544,12 @@ def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tu
         rows.append(
             f"| {label(name)} | {runs} | {int(run_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
             f"{final_mean(run_curves, TRAINING_SUCCESS)} | {to_half} | {final_mean(run_curves, 'subgoal_distance')} | "
-            f"{final_mean(run_curves, 'low_value')} |"
+            f"{final_mean(run_curves, 'low_value')} | {final_mean(run_curves, PREFERENCE_PAIRS, ',.0f')} |"
         )
     table = (
         "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | training success there (last 100 "
-        "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there |\n"
-        "|---|---|---|---|---|---|---|---|\n"
+        "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there | labelled pairs there |\n"
+        "|---|---|---|---|---|---|---|---|---|\n"
     )
     return table + "\n".join(rows), curves, csv_rows
 
@@ -552,7 +561,7 @@ def report(
 
     :param names: the runs to report, ``<algo>`` or ``<algo>-<variant>``
     """
-    tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join((*OPTION_METRICS, TRAINING_SUCCESS))]
+    tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join(CSV_METRICS)]
     for env_id in envs:
         tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds)
         csv_rows += rows
