@@ -273,6 +273,34 @@ def test_algorithms_train_on_labels_that_arrive_late(tmp_path, model_class):
     env.close()
 
 
+@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
+def test_a_restored_model_gets_only_the_labels_given_since_its_save(tmp_path, model_class):
+    """A checkpoint's dataset holds the pairs handed before it was saved: resuming hands only the labels given since."""
+    env = short_maze()
+    model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
+    model.learn(120)
+    queue = LabelQueue(tmp_path / "labels")
+    first, second, third, _ = queue.waiting_ids()
+    queue.record_answer(first, 1.0)
+    queue.record_answer(second, 0.0)
+    model.learn(60, reset_num_timesteps=False)
+    assert model.preferences.all_pairs().labels.tolist() == [1.0, 0.0]
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+
+    queue.record_answer(third, 0.5)  # given while training was down
+    resumed = model_class.load(tmp_path / "model.zip", env=env)
+    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+    resumed.learn(60, reset_num_timesteps=False)
+    assert resumed.preferences.all_pairs().labels.tolist() == [1.0, 0.0, 0.5]
+    assert queue.read_handed()["pair_id"].tolist() == [first, second, third]
+    # A model started afresh on the same queue reuses every label given (reuse_labels=True).
+    fresh = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
+    fresh.learn(60)
+    assert sorted(fresh.preferences.all_pairs().labels.tolist()) == [0.0, 0.5, 1.0]
+    env.close()
+
+
 def test_noise_is_chosen_from_the_constructor(maze_env):
     model = any_tiny_model(DIPPER, maze_env, preference_source="noisy:0.25")
     assert isinstance(model._labeler, NoisyLabeler) and model._labeler.noise == 0.25

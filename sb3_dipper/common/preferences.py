@@ -153,6 +153,11 @@ class PreferenceSource(ABC):
         """Queued pairs whose labels arrived since the last call, labelled (``None``: none)."""
         return None
 
+    def dataset_restored(self) -> None:
+        """The model's dataset was just restored from its saved file (``load_replay_buffer``): the pairs this source
+        handed to training before that save are in it already, so :meth:`collect` must not hand them again."""
+        return None  # a synchronous source hands nothing late, so nothing twice
+
 
 def add_new_labels(dataset: PreferenceDataset, source: PreferenceSource, pairs: TrajectoryPairs | None) -> None:
     """Add the pairs ``source`` labelled since the last call, then those of ``pairs`` it labelled now (NaN: queued)."""

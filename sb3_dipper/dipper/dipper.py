@@ -547,5 +547,7 @@ class DIPPER(HierarchicalAlgorithm):
         def install() -> None:
             self.trajectory_buffer.load_state_dict(trajectories)
             self.preferences = preferences
+            if self._labeler is not None:
+                self._labeler.dataset_restored()
 
         return install

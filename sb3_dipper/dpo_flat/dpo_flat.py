@@ -319,10 +319,13 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
             # The env is about to be reset: an episode a callback interrupted must not run on into the new one.
             self.trajectory_buffer.discard_open()
         if self._labeler is None:
-            assert self.env is not None
-            script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env))
-            self._labeler = preference_source_from(self.preference_source, script, self.env, None, self.seed)
+            self._labeler = self._new_labeler()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _new_labeler(self) -> PreferenceSource:
+        assert self.env is not None
+        script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env))
+        return preference_source_from(self.preference_source, script, self.env, None, self.seed)
 
     # ---------------------------------------------------------------------------------------------------- acting
 
@@ -442,6 +445,10 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         self.preferences = load_preference_data(
             sibling_path(str(path), ".npz"), self.trajectory_buffer, self.n_preference_pairs, self.segment_length
         )
+        if self._labeler is None and self.env is not None:
+            self._labeler = self._new_labeler()
+        if self._labeler is not None:
+            self._labeler.dataset_restored()
 
 
 def episode_length(env: VecEnv) -> int:

@@ -70,8 +70,9 @@ class QueuedPreferenceSource(PreferenceSource):
     (skipped pairs are dropped). Pairs meant for people once ``budget`` pairs were queued get the script's label, or
     none without a script. A source started on a directory with queued pairs takes over those still waiting; with
     ``reuse_labels`` it also hands training every label already given (a run restarted from scratch keeps people's
-    work; a model resumed from a checkpoint whose dataset holds those pairs already would get them twice: pass
-    ``reuse_labels=False`` there).
+    work). A model whose dataset is restored from its saved file (``load_replay_buffer``, as when a checkpoint
+    resumes) holds the pairs handed to training before that save already: those are not handed again, the labels
+    given since are.
 
     :param directory: the label queue directory, shared with the page (``sb3-dipper-label --run DIRECTORY``)
     :param person_fraction: the share of new pairs sent to people; the script labels the others at once (mixed mode)
@@ -108,6 +109,7 @@ class QueuedPreferenceSource(PreferenceSource):
         self._pending: set[int] = set()
         self._handed: set[int] = set()
         self._next_id = 0
+        self._dataset_restored = False
         self._rng = np.random.default_rng(seed)
 
     @property
@@ -122,7 +124,16 @@ class QueuedPreferenceSource(PreferenceSource):
             self._handed = set() if self.reuse_labels else set(queue.answers().pair_ids.tolist())
             self._next_id = queue.next_free_id()
             self._queue = queue
+            if self._dataset_restored:
+                self.dataset_restored()
         return self._queue
+
+    def dataset_restored(self) -> None:
+        if self._queue is None:  # the queue is read on first use, which then calls this again
+            self._dataset_restored = True
+            return
+        handed = self._queue.read_handed()
+        self._handed.update(handed["pair_id"][handed["labeller"] == PERSON].tolist())
 
     @property
     def pending(self) -> int:
@@ -252,7 +263,7 @@ def preference_source_from(
         spec._rng = np.random.default_rng(spec.seed)
         if isinstance(spec, QueuedPreferenceSource):
             spec.queue_info = queue_info(env, subgoal_space)
-            spec._pending, spec._handed = set(), set()
+            spec._pending, spec._handed, spec._queue, spec._dataset_restored = set(), set(), None, False
     return spec
 
 

@@ -486,6 +486,8 @@ class PIPER(HIER):
             install_higher_buffer()
             self.trajectory_buffer.load_state_dict(trajectories)
             self.preferences = preferences
+            if self._labeler is not None:
+                self._labeler.dataset_restored()
 
         return install
 
