@@ -1,12 +1,25 @@
-"""Planning over achieved states: the voxel graph, shortest paths that stitch trajectories, waypoints."""
+"""Planning over achieved states: the voxel graph, shortest paths that stitch trajectories, waypoints, and who proposes
+DIPPER's subgoals with ``planning="subgoal"`` (the planner's share, zoo_scripts/planner_share.py)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
 
+from sb3_dipper import DIPPER
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+from tests.conftest import tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
+
+REPO = Path(__file__).resolve().parent.parent
 
 SPACE = SubgoalSpace(low=np.zeros(2), high=np.full(2, 10.0), threshold=0.5)
 
@@ -69,3 +82,42 @@ def test_without_a_known_path_the_goal_is_returned(graph):
 def test_resolution_must_be_positive():
     with pytest.raises(ValueError, match="resolution must be positive"):
         SubgoalGraph(SPACE, resolution=0.0)
+
+
+# ---------------------------------------------------------------------------------------------------- who proposes
+
+
+def test_planner_decisions_are_marked_and_their_share_logged(tmp_path, maze_env):
+    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(400, log_interval=1)
+    assert len(model.subgoal_graph) > 0
+    shares = pd.read_csv(tmp_path / "progress.csv")["rollout/planned_share"].dropna()
+    assert len(shares) > 0 and ((shares >= 0) & (shares <= 1)).all() and shares.iloc[-1] > 0
+
+    observation = maze_env.reset()
+    actions = model._high_level_actions(observation, deterministic=True)
+    planned = model._planned_actions(model._with_planned_goals(observation, model.subgoal_graph))
+    np.testing.assert_array_equal(actions[model.last_planned], planned[model.last_planned])
+    model.subgoal_graph = None  # the planner off: the policy proposes every subgoal
+    model._high_level_actions(observation, deterministic=True)
+    assert model.last_planned.shape == (1,) and not model.last_planned.any()
+
+
+def test_planner_share_script_evaluates_the_model_three_ways(tmp_path):
+    run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
+    maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
+    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
+    model.learn(1000)  # the graph is built after 4 episodes
+    model.save(run / "PointMazeFourRooms-v0.zip")
+    command = [sys.executable, str(REPO / "zoo_scripts" / "planner_share.py"), str(run), "--episodes", "2"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads((run / "planner_share.json").read_text())
+    assert list(report) == ["as_trained", "untrained_policy", "policy_alone"]
+    assert all(0 <= case["success"] <= 1 and 0 <= case["planned_share"] <= 1 for case in report.values())
+    assert report["as_trained"]["planned_share"] > 0 and report["policy_alone"]["planned_share"] == 0
+
+    tiny_model(DIPPER, maze_env).save(run / "PointMazeFourRooms-v0.zip")  # planning off: nothing to measure
+    refused = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert refused.returncode != 0 and "not a DIPPER with planning='subgoal'" in refused.stderr

@@ -17,7 +17,6 @@ import json
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -28,7 +27,7 @@ from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.envs.demos import default_demonstrations
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import ALGORITHMS, load_entry, make_env
+from configs import trained_run
 
 
 def oracle_subgoals(env_id: str, option_steps: int, model: HierarchicalAlgorithm) -> np.ndarray:
@@ -91,14 +90,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     args = parser.parse_args()
     env_id = args.env or args.run.name.rsplit("_", 1)[0]
-    entry: dict[str, Any] = {**load_entry(args.algo, env_id), "normalize": False}
-    env = make_env(env_id, entry, seed=20_000, n_envs=1)
-    # rl-zoo3 keeps the VecNormalize statistics in <run>/<env>/vecnormalize.pkl.
-    statistics = args.run / env_id / "vecnormalize.pkl"
-    if statistics.exists():
-        env = VecNormalize.load(str(statistics), env)
-        env.training, env.norm_reward = False, False
-    model = ALGORITHMS[args.algo].load(args.run / f"{env_id}.zip", env=env)
+    model, env = trained_run(args.run, args.algo, env_id, seed=20_000)
     assert isinstance(model, HierarchicalAlgorithm)
     results = {
         "oracle": run_episodes(model, env, args.episodes, oracle_subgoals(env_id, model.option_steps, model)),

@@ -8,11 +8,13 @@ authors' PIPER code (https://github.com/Utsavz/piper), from which the preference
 from __future__ import annotations
 
 import copy
+from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
@@ -84,7 +86,9 @@ class DIPPER(HierarchicalAlgorithm):
     :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
     :param planning: planning over achieved states (:class:`~sb3_dipper.common.planning.SubgoalGraph`): ``"off"`` (the
         paper), ``"subgoal"`` (where the graph knows a path to the goal, propose the waypoint on it; elsewhere the
-        policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal)
+        policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal).
+        With ``"subgoal"`` the share of the policy's training proposals the planner replaced is logged as
+        ``rollout/planned_share``, and :attr:`last_planned` tells which envs' last subgoal was planned
     :param planning_lookahead: how many options along the shortest known path the waypoint lies
     :param planning_resolution: voxel size of the planning graph (default: the subgoal threshold)
     :param planning_value_threshold: keep a graph edge only if the lower level's value ``min_i Q_i(s, g, mu(s, g))`` of
@@ -277,11 +281,26 @@ class DIPPER(HierarchicalAlgorithm):
         # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
         self._labeler: PreferenceSource | None = None
+        # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
+        self.last_planned = np.zeros(self.n_envs, dtype=bool)
         if self.env is not None:
             self._goal_reached = sparse_goal_reached_fn(self.env)
             value_score = self._pair_value_score if self.value_reg == "score" else None
             script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
             self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        setup = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        if self.planning == "subgoal":
+            self._option_metrics["planned_share"] = deque(maxlen=self._stats_window_size)
+        return setup
 
     def learn(
         self: SelfDIPPER,
@@ -303,9 +322,16 @@ class DIPPER(HierarchicalAlgorithm):
         policy_input = planned if planned is not None and self.planning == "waypoint" else observation
         actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
         actions = np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
+        self.last_planned = np.zeros(actions.shape[0], dtype=bool)
         if planned is not None and self.planning == "subgoal":
-            has_path = np.any(planned["desired_goal"] != observation["desired_goal"], axis=-1)
-            actions[has_path] = self._planned_actions(planned)[has_path]
+            self.last_planned = np.any(planned["desired_goal"] != observation["desired_goal"], axis=-1)
+            actions[self.last_planned] = self._planned_actions(planned)[self.last_planned]
+        return actions
+
+    def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
+        actions = super()._training_high_level_actions(observation)
+        if self.planning == "subgoal" and self.num_timesteps >= self.learning_starts:
+            self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
 
     def _with_planned_goals(self, observation: DictObs, graph: SubgoalGraph) -> DictObs:
@@ -516,6 +542,7 @@ class DIPPER(HierarchicalAlgorithm):
             "preferences",
             "_labeler",
             "_goal_reached",
+            "last_planned",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

@@ -1,0 +1,89 @@
+"""Who proposes the subgoals: the planner or the preference-trained policy? A trained DIPPER with planning, three ways.
+
+    python zoo_scripts/planner_share.py logs/dipper/PointMazeFourRooms-v0_1
+
+With ``planning="subgoal"`` the planner over achieved states replaces the higher policy's proposal wherever its graph
+knows a path to the goal, so the success of the model as trained can be the planner's and the lower level's alone. The
+script evaluates the model (deterministic episodes) as trained, with the higher policy reset to untrained weights (if
+the success holds, the preference-trained policy does not matter where the planner decides), and with the planner off
+(the preference-trained policy alone). For each it prints the episode success and the share of higher-level decisions
+the planner made, and writes them as ``planner_share.json`` in the zoo run folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_dipper.common.files import write_atomically
+from sb3_dipper.dipper import DIPPER
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from configs import episode_successes, trained_run
+
+CASES = ("as_trained", "untrained_policy", "policy_alone")
+
+
+def evaluate(model: DIPPER, env: VecEnv, n_episodes: int) -> dict[str, float]:
+    """Deterministic success over ``n_episodes`` and the share of higher-level decisions the planner made."""
+    decisions = {"planned": 0, "all": 0}
+    decide = model._high_level_actions
+
+    def counted(observation, deterministic):  # type: ignore[no-untyped-def]
+        actions = decide(observation, deterministic)
+        decisions["planned"] += int(model.last_planned.sum())
+        decisions["all"] += int(model.last_planned.size)
+        return actions
+
+    model._high_level_actions = counted  # type: ignore[method-assign]
+    try:
+        success = float(np.mean(episode_successes(model, env, n_episodes)))
+    finally:
+        del model._high_level_actions
+    return {"success": success, "planned_share": decisions["planned"] / max(decisions["all"], 1)}
+
+
+def reset_higher_policy(model: DIPPER, seed: int) -> None:
+    """Every network of the higher policy back to freshly initialised weights (drawn from ``seed``)."""
+    th.manual_seed(seed)
+    for module in model.policy.modules():
+        reset = getattr(module, "reset_parameters", None)
+        if callable(reset):
+            reset()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a zoo run folder (logs/dipper/<env>_<n>) holding <env>.zip")
+    parser.add_argument("--algo", default="dipper", help="zoo name of the model's algorithm (a DIPPER entry)")
+    parser.add_argument("--env", help="task (default: the run folder's name without its _<n>)")
+    parser.add_argument("--episodes", type=int, default=50)
+    args = parser.parse_args()
+    env_id = args.env or args.run.name.rsplit("_", 1)[0]
+    results = {}
+    for case in CASES:
+        model, env = trained_run(args.run, args.algo, env_id, seed=20_000)
+        if not isinstance(model, DIPPER) or model.planning != "subgoal":
+            parser.error(f"{args.run}: the model is not a DIPPER with planning='subgoal'; there is no planner to measure")
+        if case == "untrained_policy":
+            reset_higher_policy(model, seed=0)
+        if case == "policy_alone":
+            model.subgoal_graph = None
+        results[case] = evaluate(model, env, args.episodes)
+        env.close()
+    report = json.dumps(results, indent=1)
+    write_atomically(args.run / "planner_share.json", lambda file: file.write(report.encode()))
+    print(report)
+
+
+if __name__ == "__main__":
+    main()
