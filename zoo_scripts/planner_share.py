@@ -1,13 +1,15 @@
 """Who proposes the subgoals: the planner or the preference-trained policy? A trained DIPPER with planning, three ways.
 
     python zoo_scripts/planner_share.py logs/dipper/PointMazeFourRooms-v0_1
+    python zoo_scripts/planner_share.py runs/*/seed_*/dipper/PointMazeFourRooms-v0_1 --csv planner_share.csv
 
 With ``planning="subgoal"`` the planner over achieved states replaces the higher policy's proposal wherever its graph
 knows a path to the goal, so the success of the model as trained can be the planner's and the lower level's alone. The
 script evaluates the model (deterministic episodes) as trained, with the higher policy reset to untrained weights (if
 the success holds, the preference-trained policy does not matter where the planner decides), and with the planner off
 (the preference-trained policy alone). For each it prints the episode success and the share of higher-level decisions
-the planner made, and writes them as ``planner_share.json`` in the zoo run folder.
+the planner made, and writes them as ``planner_share.json`` in the zoo run folder; with several run folders and
+``--csv``, also one CSV row per run and case.
 """
 
 from __future__ import annotations
@@ -16,7 +18,9 @@ import argparse
 import json
 import os
 import sys
+from functools import partial
 from pathlib import Path
+from typing import BinaryIO
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -61,28 +65,46 @@ def reset_higher_policy(model: DIPPER, seed: int) -> None:
             reset()
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a zoo run folder (logs/dipper/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", default="dipper", help="zoo name of the model's algorithm (a DIPPER entry)")
-    parser.add_argument("--env", help="task (default: the run folder's name without its _<n>)")
-    parser.add_argument("--episodes", type=int, default=50)
-    args = parser.parse_args()
-    env_id = args.env or args.run.name.rsplit("_", 1)[0]
+def write_bytes(file: BinaryIO, data: bytes) -> None:
+    file.write(data)
+
+
+def measure(run: Path, algo: str, env_id: str, n_episodes: int) -> dict[str, dict[str, float]]:
+    """Every case of :data:`CASES` on a fresh copy of the run's model."""
     results = {}
     for case in CASES:
-        model, env = trained_run(args.run, args.algo, env_id, seed=20_000)
+        model, env = trained_run(run, algo, env_id, seed=20_000)
         if not isinstance(model, DIPPER) or model.planning != "subgoal":
-            parser.error(f"{args.run}: the model is not a DIPPER with planning='subgoal'; there is no planner to measure")
+            raise ValueError(f"{run}: the model is not a DIPPER with planning='subgoal'; there is no planner to measure")
         if case == "untrained_policy":
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":
             model.subgoal_graph = None
-        results[case] = evaluate(model, env, args.episodes)
+        results[case] = evaluate(model, env, n_episodes)
         env.close()
-    report = json.dumps(results, indent=1)
-    write_atomically(args.run / "planner_share.json", lambda file: file.write(report.encode()))
-    print(report)
+    return results
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/dipper/<env>_<n>) holding <env>.zip")
+    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a DIPPER entry)")
+    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
+    args = parser.parse_args()
+    rows = ["run,case,success,planned_share"]
+    for run in args.runs:
+        try:
+            results = measure(run, args.algo, args.env or run.name.rsplit("_", 1)[0], args.episodes)
+        except ValueError as error:
+            parser.error(str(error))
+        report = json.dumps(results, indent=1)
+        write_atomically(run / "planner_share.json", partial(write_bytes, data=report.encode()))
+        print(run, report, flush=True)
+        rows += [f"{run},{case},{result['success']:.4f},{result['planned_share']:.4f}" for case, result in results.items()]
+    if args.csv is not None:
+        write_atomically(args.csv, partial(write_bytes, data=("\n".join(rows) + "\n").encode()))
 
 
 if __name__ == "__main__":
