@@ -115,11 +115,12 @@ def test_planner_share_script_evaluates_the_model_three_ways(tmp_path):
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads((run / "planner_share.json").read_text())
-    assert list(report) == ["as_trained", "untrained_policy", "policy_alone"]
+    assert list(report) == ["as_trained", "untrained_policy", "policy_alone", "lower_level_alone"]
     rows = pd.read_csv(tmp_path / "share.csv")
     assert rows["case"].tolist() == list(report) and rows["success"].tolist() == [c["success"] for c in report.values()]
     assert all(0 <= case["success"] <= 1 and 0 <= case["planned_share"] <= 1 for case in report.values())
-    assert report["as_trained"]["planned_share"] > 0 and report["policy_alone"]["planned_share"] == 0
+    assert report["as_trained"]["planned_share"] > 0
+    assert report["policy_alone"]["planned_share"] == report["lower_level_alone"]["planned_share"] == 0
 
     tiny_model(DIPPER, maze_env).save(run / "PointMazeFourRooms-v0.zip")  # planning off: nothing to measure
     refused = subprocess.run(command, capture_output=True, text=True, timeout=300)

@@ -1,4 +1,4 @@
-"""Who proposes the subgoals: the planner or the preference-trained policy? A trained DIPPER with planning, three ways.
+"""Who proposes the subgoals: the planner or the preference-trained policy? A trained DIPPER with planning, four ways.
 
     python zoo_scripts/planner_share.py logs/dipper/PointMazeFourRooms-v0_1
     python zoo_scripts/planner_share.py runs/*/seed_*/dipper/PointMazeFourRooms-v0_1 --csv planner_share.csv
@@ -6,10 +6,11 @@
 With ``planning="subgoal"`` the planner over achieved states replaces the higher policy's proposal wherever its graph
 knows a path to the goal, so the success of the model as trained can be the planner's and the lower level's alone. The
 script evaluates the model (deterministic episodes) as trained, with the higher policy reset to untrained weights (if
-the success holds, the preference-trained policy does not matter where the planner decides), and with the planner off
-(the preference-trained policy alone). For each it prints the episode success and the share of higher-level decisions
-the planner made, and writes them as ``planner_share.json`` in the zoo run folder; with several run folders and
-``--csv``, also one CSV row per run and case.
+the success holds, the preference-trained policy does not matter where the planner decides), with the planner off (the
+preference-trained policy alone) and with the env's goal as every subgoal (the lower level alone: what the hierarchy
+adds is measured against it). For each it prints the episode success and the share of higher-level decisions the
+planner made, and writes them as ``planner_share.json`` in the zoo run folder; with ``--csv``, also one CSV row per run
+and case.
 """
 
 from __future__ import annotations
@@ -34,15 +35,21 @@ from sb3_dipper.dipper import DIPPER
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from configs import episode_successes, trained_run
 
-CASES = ("as_trained", "untrained_policy", "policy_alone")
+CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 
 
-def evaluate(model: DIPPER, env: VecEnv, n_episodes: int) -> dict[str, float]:
-    """Deterministic success over ``n_episodes`` and the share of higher-level decisions the planner made."""
+def evaluate(model: DIPPER, env: VecEnv, n_episodes: int, goal_as_subgoal: bool = False) -> dict[str, float]:
+    """Deterministic success over ``n_episodes`` and the share of higher-level decisions the planner made.
+
+    :param goal_as_subgoal: replace the higher level by the env's goal as every subgoal (the lower level alone)
+    """
     decisions = {"planned": 0, "all": 0}
     decide = model._high_level_actions
 
     def counted(observation, deterministic):  # type: ignore[no-untyped-def]
+        if goal_as_subgoal:
+            model.last_planned = np.zeros(len(observation["desired_goal"]), dtype=bool)
+            return model._planned_actions(observation)
         actions = decide(observation, deterministic)
         decisions["planned"] += int(model.last_planned.sum())
         decisions["all"] += int(model.last_planned.size)
@@ -80,7 +87,7 @@ def measure(run: Path, algo: str, env_id: str, n_episodes: int) -> dict[str, dic
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":
             model.subgoal_graph = None
-        results[case] = evaluate(model, env, n_episodes)
+        results[case] = evaluate(model, env, n_episodes, goal_as_subgoal=case == "lower_level_alone")
         env.close()
     return results
 
