@@ -19,9 +19,7 @@ import argparse
 import json
 import os
 import sys
-from functools import partial
 from pathlib import Path
-from typing import BinaryIO
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -29,7 +27,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dipper.common.files import write_atomically
+from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.dipper import DIPPER
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -48,7 +46,6 @@ def evaluate(model: DIPPER, env: VecEnv, n_episodes: int, goal_as_subgoal: bool 
 
     def counted(observation, deterministic):  # type: ignore[no-untyped-def]
         if goal_as_subgoal:
-            model.last_planned = np.zeros(len(observation["desired_goal"]), dtype=bool)
             return model._planned_actions(observation)
         actions = decide(observation, deterministic)
         decisions["planned"] += int(model.last_planned.sum())
@@ -70,10 +67,6 @@ def reset_higher_policy(model: DIPPER, seed: int) -> None:
         reset = getattr(module, "reset_parameters", None)
         if callable(reset):
             reset()
-
-
-def write_bytes(file: BinaryIO, data: bytes) -> None:
-    file.write(data)
 
 
 def measure(run: Path, algo: str, env_id: str, n_episodes: int) -> dict[str, dict[str, float]]:
@@ -107,11 +100,11 @@ def main() -> None:
         except ValueError as error:
             parser.error(str(error))
         report = json.dumps(results, indent=1)
-        write_atomically(run / "planner_share.json", partial(write_bytes, data=report.encode()))
+        write_bytes_atomically(run / "planner_share.json", report.encode())
         print(run, report, flush=True)
         rows += [f"{run},{case},{result['success']:.4f},{result['planned_share']:.4f}" for case, result in results.items()]
     if args.csv is not None:
-        write_atomically(args.csv, partial(write_bytes, data=("\n".join(rows) + "\n").encode()))
+        write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
 
 
 if __name__ == "__main__":

@@ -55,6 +55,11 @@ def write_atomically(path: PathLike, write: Callable[[io.BufferedWriter], object
     return path
 
 
+def write_bytes_atomically(path: PathLike, data: bytes) -> Path:
+    """``data`` as the whole content of ``path``, written as :func:`write_atomically` writes."""
+    return write_atomically(path, lambda file: file.write(data))
+
+
 def npz_path(path: PathLike) -> Path:
     """Where ``np.savez(path)`` writes: numpy appends ``.npz`` to a name that does not end with it."""
     path = Path(path)

@@ -434,9 +434,13 @@ class HierarchicalAlgorithm(CheckedLoading):
             # The env is about to be reset: an option a callback interrupted must not run on into the new episode.
             self._end_open_episodes()
         self._option_metrics: dict[str, deque] = {
-            key: deque(maxlen=self._stats_window_size) for key in ("subgoal_distance", "low_value")
+            key: deque(maxlen=self._stats_window_size) for key in self._option_metric_keys()
         }
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _option_metric_keys(self) -> tuple[str, ...]:
+        """The ``rollout/<key>`` averages over the last options that :meth:`dump_logs` logs (a subclass adds its own)."""
+        return ("subgoal_distance", "low_value")
 
     def _refresh_low_normalizer(self) -> None:
         """Copy the live ``VecNormalize`` statistics (a saved model keeps the last copy for ``load(env=None)``)."""

@@ -8,13 +8,11 @@ authors' PIPER code (https://github.com/Utsavz/piper), from which the preference
 from __future__ import annotations
 
 import copy
-from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
@@ -289,18 +287,9 @@ class DIPPER(HierarchicalAlgorithm):
             script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
             self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
 
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ) -> tuple[int, BaseCallback]:
-        setup = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
-        if self.planning == "subgoal":
-            self._option_metrics["planned_share"] = deque(maxlen=self._stats_window_size)
-        return setup
+    def _option_metric_keys(self) -> tuple[str, ...]:
+        planned = ("planned_share",) if self.planning == "subgoal" else ()
+        return (*super()._option_metric_keys(), *planned)
 
     def learn(
         self: SelfDIPPER,

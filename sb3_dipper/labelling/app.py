@@ -24,7 +24,7 @@ import numpy as np
 from flask import Flask, Response, abort, jsonify, request
 from werkzeug.serving import BaseWSGIServer, make_server
 
-from sb3_dipper.common.files import write_atomically
+from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.labelling.queue import ANSWERS, LabelQueue
 from sb3_dipper.labelling.render import SIDES, PairRenderer
 
@@ -199,7 +199,7 @@ class LabellingServer:
                 if self._renderer is None:
                     self._renderer = PairRenderer(self.queue.read_info())
                 png = self._renderer.render(self.queue.read_pair(pair_id), side)
-            write_atomically(cached, lambda file: file.write(png))
+            write_bytes_atomically(cached, png)
         return cached.read_bytes()
 
 

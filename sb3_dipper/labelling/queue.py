@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_dipper.common.files import read_npz, save_npz, write_atomically
+from sb3_dipper.common.files import read_npz, save_npz, write_bytes_atomically
 from sb3_dipper.common.preferences import TrajectoryPairs
 
 # Who labelled a pair (the ``labeller`` column of handed.npz).
@@ -77,8 +77,7 @@ class LabelQueue:
     # ------------------------------------------------------------------------------------------------ queue info
 
     def write_info(self, info: dict[str, Any]) -> None:
-        text = json.dumps(info, indent=2, sort_keys=True).encode()
-        write_atomically(self.info_path, lambda file: file.write(text))
+        write_bytes_atomically(self.info_path, json.dumps(info, indent=2, sort_keys=True).encode())
 
     def read_info(self) -> dict[str, Any]:
         if not self.info_path.exists():

@@ -109,7 +109,6 @@ class QueuedPreferenceSource(PreferenceSource):
         self._pending: set[int] = set()
         self._handed: set[int] = set()
         self._next_id = 0
-        self._dataset_restored = False
         self._rng = np.random.default_rng(seed)
 
     @property
@@ -124,15 +123,10 @@ class QueuedPreferenceSource(PreferenceSource):
             self._handed = set() if self.reuse_labels else set(queue.answers().pair_ids.tolist())
             self._next_id = queue.next_free_id()
             self._queue = queue
-            if self._dataset_restored:
-                self.dataset_restored()
         return self._queue
 
     def dataset_restored(self) -> None:
-        if self._queue is None:  # the queue is read on first use, which then calls this again
-            self._dataset_restored = True
-            return
-        handed = self._queue.read_handed()
+        handed = self.queue.read_handed()  # after the first use's take-over, which this may be
         self._handed.update(handed["pair_id"][handed["labeller"] == PERSON].tolist())
 
     @property
@@ -263,7 +257,7 @@ def preference_source_from(
         spec._rng = np.random.default_rng(spec.seed)
         if isinstance(spec, QueuedPreferenceSource):
             spec.queue_info = queue_info(env, subgoal_space)
-            spec._pending, spec._handed, spec._queue, spec._dataset_restored = set(), set(), None, False
+            spec._pending, spec._handed, spec._queue = set(), set(), None
     return spec
 
 
