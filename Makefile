@@ -52,6 +52,7 @@ test-slow: $(TEST_STAMP)
 
 lint: $(TEST_STAMP)
 	$(PY) -m ruff check sb3_dipper tests zoo_scripts setup.py
+	$(PY) -m ruff format --check sb3_dipper tests zoo_scripts setup.py
 	$(PY) -m mypy sb3_dipper zoo_scripts
 
 format: $(TEST_STAMP)

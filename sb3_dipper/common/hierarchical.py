@@ -346,7 +346,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         self._refresh_low_normalizer()
         self.policy.set_training_mode(False)
         return self._hierarchical_policy(self._high_level_actions, self._acting_low_level()).predict(
-            observation, state, episode_start, deterministic  # type: ignore[arg-type]
+            observation, state, episode_start, deterministic
         )
 
     def export_policy(self) -> HierarchicalPolicy:

@@ -124,7 +124,7 @@ class HierarchicalPolicy:
 
     def predict(
         self,
-        observation: dict[str, np.ndarray],
+        observation: np.ndarray | dict[str, np.ndarray],
         state: tuple[np.ndarray, ...] | None = None,
         episode_start: np.ndarray | None = None,
         deterministic: bool = False,
