@@ -67,6 +67,13 @@ def test_a_mismatched_env_at_load_is_refused(model_class, tmp_path, maze_env):
         model_class.load(tmp_path / "model", env=other)
 
 
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_predict_on_a_flat_observation_names_the_dict_it_needs(model_class, maze_env):
+    model = tiny_model(model_class, maze_env)
+    with pytest.raises(TypeError, match="goal env's Dict observations, got ndarray"):
+        model.predict(np.zeros(maze_env.observation_space["observation"].shape))
+
+
 def test_bad_dipper_switches_are_refused(maze_env):
     with pytest.raises(ValueError, match="Unknown value_reg 'papper'"):
         DIPPER("MlpPolicy", maze_env, value_reg="papper")
