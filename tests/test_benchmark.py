@@ -245,7 +245,9 @@ def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys)
 
 
 def test_overrides_become_the_zoo_s_flags():
-    args = argparse.Namespace(eval_freq=150, eval_episodes=20, n_eval_envs=None, n_timesteps=None, pause_after_minutes=None)
+    args = argparse.Namespace(
+        eval_freq=150, eval_episodes=20, n_eval_envs=None, n_timesteps=None, pause_after_minutes=None, save_freq=None
+    )
     args.set = ["planning='off'", "low_policy_kwargs=dict(net_arch=[16])", "nll_coef=0.0"]
     args.env_kwargs = ["max_episode_steps=50"]
     flags = benchmark.zoo_flags(args)
@@ -256,6 +258,8 @@ def test_overrides_become_the_zoo_s_flags():
     ]  # fmt: skip
     args.pause_after_minutes = 80.0
     assert benchmark.zoo_flags(args)[6:8] == ["--pause-after-minutes", "80.0"]
+    args.save_freq = 300
+    assert benchmark.zoo_flags(args)[8:10] == ["--save-freq", "300"]
     with pytest.raises(ValueError, match="quote a string: --set \"planning='off'\""):
         benchmark.zoo_pairs("--set", ["planning=off"])
     for malformed in ("planning", "=1", "beta=0.1)"):

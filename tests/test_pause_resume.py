@@ -20,7 +20,7 @@ from tests.test_benchmark import ENV_ID, learning_command, run_folder
 @pytest.mark.parametrize("algo", ["hier", "sac"])
 def test_a_paused_run_resumes_in_its_folder_to_its_whole_budget(algo, tmp_path):
     out = tmp_path / "runs"
-    command = learning_command(out, "--algos", algo, "--seeds", "0", "--workers", "1")
+    command = learning_command(out, "--algos", algo, "--seeds", "0", "--workers", "1", "--save-freq", "150")
     paused = subprocess.run([*command, "--pause-after-minutes", "0"], capture_output=True, text=True, timeout=300)
     assert paused.returncode == 0, paused.stderr[-3000:]
     run = run_folder(out, algo, 0)
@@ -37,6 +37,7 @@ def test_a_paused_run_resumes_in_its_folder_to_its_whole_budget(algo, tmp_path):
     assert data["num_timesteps"] >= 300 and data["_total_timesteps"] == 300
     with np.load(run / "evaluations.npz") as evaluations:
         assert list(evaluations["timesteps"]) == [150, 300]
+    assert sorted(path.name for path in run.glob("rl_model_*")) == ["rl_model_150_steps.zip", "rl_model_300_steps.zip"]
     result = json.loads((run / "result.json").read_text())
     assert result["seconds"] >= json.loads((run / "parts.json").read_text())["seconds"] > 0
     assert not (run / RESUME_FOLDER).exists()  # nothing is left to resume

@@ -104,19 +104,25 @@ def test_planner_decisions_are_marked_and_their_share_logged(tmp_path, maze_env)
     assert model.last_planned.shape == (1,) and not model.last_planned.any()
 
 
-def test_planner_share_script_evaluates_the_model_three_ways(tmp_path):
+def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways(tmp_path):
     run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
     maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
     model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
     model.learn(1000)  # the graph is built after 4 episodes
     model.save(run / "PointMazeFourRooms-v0.zip")
+    # Checkpoints as rl-zoo3's CheckpointCallback names them (benchmark.py --save-freq), out of order on disk.
+    model.save(run / "rl_model_1000_steps.zip")
+    model.num_timesteps = 800
+    model.save(run / "rl_model_800_steps.zip")
     command = [sys.executable, str(REPO / "zoo_scripts" / "planner_share.py"), str(run), "--episodes", "2"]
     command += ["--csv", str(tmp_path / "share.csv")]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    done = subprocess.run([*command, "--checkpoints"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads((run / "planner_share.json").read_text())
     assert list(report) == ["as_trained", "untrained_policy", "policy_alone", "lower_level_alone"]
     rows = pd.read_csv(tmp_path / "share.csv")
+    assert rows["steps"].tolist() == [800] * 4 + [1000] * 4 + [1000] * 4  # the checkpoints in order, then the final model
+    rows = rows.iloc[-4:]
     assert rows["case"].tolist() == list(report) and rows["success"].tolist() == [c["success"] for c in report.values()]
     assert all(0 <= case["success"] <= 1 and 0 <= case["planned_share"] <= 1 for case in report.values())
     assert report["as_trained"]["planned_share"] > 0

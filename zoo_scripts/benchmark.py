@@ -13,7 +13,7 @@
 ``learning`` runs every (algorithm, task, seed) triple as the RL-Zoo run a user would start::
 
     sb3-dipper-zoo train --algo ALGO --env ENV --seed SEED -f OUT/VARIANT/seed_SEED --eval-freq F --eval-episodes N \
-        --n-eval-envs E --num-threads 1 [-n BUDGET] [--env-kwargs k:v ...] [-params k:v ...]
+        --n-eval-envs E --num-threads 1 [-n BUDGET] [--save-freq S] [--env-kwargs k:v ...] [-params k:v ...]
 
 so hyperparameters come from the task's entry of ``hyperparams/<algo>.yml`` (``callback`` included) exactly as there,
 ``--set key=value`` and ``--env-kwargs key=value`` become the zoo's ``-params key:value`` and ``--env-kwargs key:value``
@@ -24,6 +24,7 @@ training and the evaluation envs), and each run is an ordinary zoo run folder::
         0.monitor.csv ...         monitor files (episode return, length, is_success)
         <env>/config.yml args.yml command.txt
         <env>.zip best_model.zip  the final model; the best one by evaluation reward
+        rl_model_<steps>_steps.zip  with --save-freq: the model every that many primitive steps
         evaluations.npz           SB3's EvalCallback: timesteps, results, ep_lengths, successes
         progress.csv              SB3's CSV log, where the YAML entry names CSVProgressCallback (the hierarchical
                                   algorithms): rollout/subgoal_distance, rollout/low_value, eval/success_rate, ...
@@ -382,6 +383,8 @@ def zoo_flags(args: argparse.Namespace) -> list[str]:
     flags = ["--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--n-eval-envs", str(n_eval_envs)]
     if args.pause_after_minutes is not None:
         flags += ["--pause-after-minutes", str(args.pause_after_minutes)]
+    if args.save_freq:
+        flags += ["--save-freq", str(args.save_freq)]
     if args.n_timesteps:
         flags += ["-n", str(args.n_timesteps)]
     if args.env_kwargs:
@@ -692,6 +695,12 @@ def main() -> None:
         "--pause-after-minutes",
         type=float,
         help="pause each run after this many minutes of training with a resume checkpoint; the same command resumes it",
+    )
+    learning.add_argument(
+        "--save-freq",
+        type=int,
+        help="also keep the model every this many primitive steps (rl-zoo3's rl_model_<steps>_steps.zip in the run "
+        "folder), e.g. for zoo_scripts/planner_share.py --checkpoints",
     )
     learning.add_argument("--out", default="runs/benchmark", help="runs in <out>/<variant>/seed_<n>/, tables, CSV, figure")
     learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")

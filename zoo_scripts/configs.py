@@ -86,15 +86,18 @@ def make_env(env_id: str, entry: dict[str, Any], seed: int, n_envs: int | None =
     return env
 
 
-def trained_run(run: Path, algo: str, env_id: str, seed: int, n_envs: int = 1) -> tuple[BaseAlgorithm, VecEnv]:
-    """The model of a zoo run folder (``<run>/<env>.zip``) on a fresh evaluation env, with the run's ``VecNormalize``
-    statistics (rl-zoo3 keeps them in ``<run>/<env>/vecnormalize.pkl``) frozen where it has them."""
+def trained_run(
+    run: Path, algo: str, env_id: str, seed: int, n_envs: int = 1, model_file: Path | None = None
+) -> tuple[BaseAlgorithm, VecEnv]:
+    """The model of a zoo run folder (``<run>/<env>.zip``, or ``model_file``, e.g. one of its checkpoints) on a fresh
+    evaluation env, with the run's ``VecNormalize`` statistics (rl-zoo3 keeps the last ones in
+    ``<run>/<env>/vecnormalize.pkl``) frozen where it has them."""
     env = make_env(env_id, {**load_entry(algo, env_id), "normalize": False}, seed=seed, n_envs=n_envs)
     statistics = run / env_id / "vecnormalize.pkl"
     if statistics.exists():
         env = VecNormalize.load(str(statistics), env)
         env.training, env.norm_reward = False, False
-    return ALGORITHMS[algo].load(run / f"{env_id}.zip", env=env), env
+    return ALGORITHMS[algo].load(model_file or run / f"{env_id}.zip", env=env), env
 
 
 def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int) -> list[float]:

@@ -2,6 +2,7 @@
 
     python zoo_scripts/planner_share.py logs/dipper/PointMazeFourRooms-v0_1
     python zoo_scripts/planner_share.py runs/*/seed_*/dipper/PointMazeFourRooms-v0_1 --csv planner_share.csv
+    python zoo_scripts/planner_share.py runs/p9/switches/seed_1/dipper/FetchPushFixed-v0_1 --checkpoints --csv curve.csv
 
 With ``planning="subgoal"`` the planner over achieved states replaces the higher policy's proposal wherever its graph
 knows a path to the goal, so the success of the model as trained can be the planner's and the lower level's alone. The
@@ -9,8 +10,10 @@ script evaluates the model (deterministic episodes) as trained, with the higher 
 the success holds, the preference-trained policy does not matter where the planner decides), with the planner off (the
 preference-trained policy alone) and with the env's goal as every subgoal (the lower level alone: what the hierarchy
 adds is measured against it). For each it prints the episode success and the share of higher-level decisions the
-planner made, and writes them as ``planner_share.json`` in the zoo run folder; with ``--csv``, also one CSV row per run
-and case.
+planner made, and writes them as ``planner_share.json`` in the zoo run folder; with ``--csv``, also one CSV row per run,
+model and case. With ``--checkpoints`` it also measures every checkpoint the run kept (``rl_model_<steps>_steps.zip``,
+from ``benchmark.py learning --save-freq``), so the four cases can be followed over training; a run with
+``VecNormalize`` is evaluated with its last statistics at every checkpoint.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -69,20 +73,34 @@ def reset_higher_policy(model: DIPPER, seed: int) -> None:
             reset()
 
 
-def measure(run: Path, algo: str, env_id: str, n_episodes: int) -> dict[str, dict[str, float]]:
-    """Every case of :data:`CASES` on a fresh copy of the run's model."""
-    results = {}
+def checkpoints(run: Path) -> list[Path]:
+    """The checkpoints rl-zoo3 kept in ``run`` (``rl_model_<steps>_steps.zip``), in the order they were saved."""
+    steps = {}
+    for path in run.glob("rl_model_*_steps.zip"):
+        match = re.fullmatch(r"rl_model_(\d+)_steps\.zip", path.name)
+        if match:
+            steps[path] = int(match.group(1))
+    return sorted(steps, key=steps.__getitem__)
+
+
+def measure(
+    run: Path, algo: str, env_id: str, n_episodes: int, model_file: Path | None = None
+) -> tuple[int, dict[str, dict[str, float]]]:
+    """Every case of :data:`CASES` on a fresh copy of the run's model (or of ``model_file``), and the primitive steps
+    that model had trained."""
+    results, steps = {}, 0
     for case in CASES:
-        model, env = trained_run(run, algo, env_id, seed=20_000)
+        model, env = trained_run(run, algo, env_id, seed=20_000, model_file=model_file)
         if not isinstance(model, DIPPER) or model.planning != "subgoal":
             raise ValueError(f"{run}: the model is not a DIPPER with planning='subgoal'; there is no planner to measure")
+        steps = model.num_timesteps
         if case == "untrained_policy":
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":
             model.subgoal_graph = None
         results[case] = evaluate(model, env, n_episodes, goal_as_subgoal=case == "lower_level_alone")
         env.close()
-    return results
+    return steps, results
 
 
 def main() -> None:
@@ -92,17 +110,24 @@ def main() -> None:
     parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
+    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     args = parser.parse_args()
-    rows = ["run,case,success,planned_share"]
+    rows = ["run,steps,case,success,planned_share"]
     for run in args.runs:
-        try:
-            results = measure(run, args.algo, args.env or run.name.rsplit("_", 1)[0], args.episodes)
-        except ValueError as error:
-            parser.error(str(error))
-        report = json.dumps(results, indent=1)
-        write_bytes_atomically(run / "planner_share.json", report.encode())
-        print(run, report, flush=True)
-        rows += [f"{run},{case},{result['success']:.4f},{result['planned_share']:.4f}" for case, result in results.items()]
+        env_id = args.env or run.name.rsplit("_", 1)[0]
+        models = [*(checkpoints(run) if args.checkpoints else []), None]  # None: the run's final model
+        for model_file in models:
+            try:
+                steps, results = measure(run, args.algo, env_id, args.episodes, model_file)
+            except ValueError as error:
+                parser.error(str(error))
+            if model_file is None:
+                write_bytes_atomically(run / "planner_share.json", json.dumps(results, indent=1).encode())
+            print(run, steps, json.dumps(results), flush=True)
+            rows += [
+                f"{run},{steps},{case},{result['success']:.4f},{result['planned_share']:.4f}"
+                for case, result in results.items()
+            ]
     if args.csv is not None:
         write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
 
