@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
@@ -16,7 +17,7 @@ from sb3_dipper import DIPPER
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from tests.conftest import tiny_model
+from tests.conftest import short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 
 REPO = Path(__file__).resolve().parent.parent
@@ -102,6 +103,39 @@ def test_planner_decisions_are_marked_and_their_share_logged(tmp_path, maze_env)
     model.subgoal_graph = None  # the planner off: the policy proposes every subgoal
     model._high_level_actions(observation, deterministic=True)
     assert model.last_planned.shape == (1,) and not model.last_planned.any()
+
+
+def test_plan_in_predict_false_plans_in_training_only(tmp_path):
+    models = {}
+    for plan_in_predict in (True, False):
+        model = tiny_model(DIPPER, short_maze(), planning="subgoal", planning_lookahead=2, plan_in_predict=plan_in_predict)
+        model.set_logger(configure(str(tmp_path / str(plan_in_predict)), ["csv"]))
+        model.learn(400, log_interval=1)
+        models[plan_in_predict] = model
+    # Training is the same run: the planner steered the training proposals either way.
+    assert (pd.read_csv(tmp_path / "False" / "progress.csv")["rollout/planned_share"].dropna() > 0).any()
+    for trained, policy_only in zip(models[True].policy.parameters(), models[False].policy.parameters(), strict=True):
+        assert th.equal(trained, policy_only)
+
+    model = models[False]
+    observation = short_maze(seed=3).reset()
+    actions, _ = model.predict(observation, deterministic=True)
+    assert not model.last_planned.any()  # the preference-trained policy proposed the subgoal
+    model.plan_in_predict = True
+    model.predict(observation, deterministic=True)
+    assert model.last_planned.any()
+    model.plan_in_predict = False
+    # Nothing of the planner is needed to act, so the model exports; the exported policy acts as predict does.
+    exported_actions, _ = model.export_policy().predict(observation, deterministic=True)
+    np.testing.assert_array_equal(exported_actions, actions)
+    model.save(tmp_path / "model")
+    assert DIPPER.load(tmp_path / "model").plan_in_predict is False
+
+
+@pytest.mark.parametrize("planning", ["off", "waypoint"])
+def test_plan_in_predict_false_needs_the_subgoal_planner(maze_env, planning):
+    with pytest.raises(ValueError, match="plan_in_predict=False needs planning='subgoal'"):
+        tiny_model(DIPPER, maze_env, planning=planning, plan_in_predict=False)
 
 
 def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways(tmp_path):

@@ -320,13 +320,21 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
         """Higher-level actions in [-1, 1]^d for a batch of (normalised) observations."""
 
+    def _collecting_high_level_actions(self, observation: DictObs) -> np.ndarray:
+        """The higher level's own proposals while collecting (what :meth:`predict` proposes, sampled)."""
+        return self._high_level_actions(observation, deterministic=False)
+
+    def _predict_plans(self) -> bool:
+        """Whether :meth:`predict` uses state that :meth:`export_policy` cannot export (a planner's graph)."""
+        return False
+
     def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
         """Actions while collecting: uniform before ``learning_starts`` and with ``random_subgoal_prob``."""
         assert self.subgoal_space is not None
         shape = (self.n_envs, self.subgoal_space.dim)
         if self.num_timesteps < self.learning_starts:
             return self._rng.uniform(-1.0, 1.0, size=shape).astype(np.float32)
-        actions = self._high_level_actions(observation, deterministic=False)
+        actions = self._collecting_high_level_actions(observation)
         random = self._rng.random(self.n_envs) < self.random_subgoal_prob
         actions[random] = self._rng.uniform(-1.0, 1.0, size=(int(random.sum()), shape[1]))
         return actions
@@ -355,13 +363,14 @@ class HierarchicalAlgorithm(CheckedLoading):
         ``VecNormalize`` statistics. Its ``predict(obs, state, episode_start, deterministic)`` gives this model's
         actions; later training does not change it.
 
-        :raises NotImplementedError: for a model that plans (DIPPER with ``planning != "off"``): its waypoints come from
-            the subgoal graph, which is not exported; use :meth:`predict`
+        :raises NotImplementedError: for a model whose :meth:`predict` plans (DIPPER with ``planning != "off"``, unless
+            ``plan_in_predict=False``): its waypoints come from the subgoal graph, which is not exported; use :meth:`predict`
         """
-        if getattr(self, "subgoal_graph", None) is not None:
+        if self._predict_plans():
             raise NotImplementedError(
                 f"This {type(self).__name__} plans over its subgoal graph, which export_policy does not export: "
-                "act with model.predict, or export a model trained with planning='off'"
+                "act with model.predict, export a model trained with planning='off', or (planning='subgoal') set "
+                "model.plan_in_predict = False to export the preference-trained policy alone"
             )
         self._refresh_low_normalizer()
         policy = self._hierarchical_policy(PolicyHighLevel(self.policy), self._acting_low_level())

@@ -87,6 +87,9 @@ class DIPPER(HierarchicalAlgorithm):
         policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal).
         With ``"subgoal"`` the share of the policy's training proposals the planner replaced is logged as
         ``rollout/planned_share``, and :attr:`last_planned` tells which envs' last subgoal was planned
+    :param plan_in_predict: whether :meth:`predict` (evaluation, deployment) plans as training does. ``False`` (only
+        with ``planning="subgoal"``): the planner steers the training proposals, and the preference-trained policy
+        proposes every subgoal when the model is used; such a model can be exported (:meth:`export_policy`)
     :param planning_lookahead: how many options along the shortest known path the waypoint lies
     :param planning_resolution: voxel size of the planning graph (default: the subgoal threshold)
     :param planning_value_threshold: keep a graph edge only if the lower level's value ``min_i Q_i(s, g, mu(s, g))`` of
@@ -151,6 +154,7 @@ class DIPPER(HierarchicalAlgorithm):
         hindsight_actions: bool = False,
         truncate_at_goal: bool = False,
         planning: str = "off",
+        plan_in_predict: bool = True,
         planning_lookahead: int = 1,
         planning_resolution: float | None = None,
         planning_value_threshold: float | None = None,
@@ -248,7 +252,13 @@ class DIPPER(HierarchicalAlgorithm):
         self.truncate_at_goal = truncate_at_goal
         if planning not in PLANNING_MODES:
             raise ValueError(f"Unknown planning {planning!r}: choose one of {PLANNING_MODES}")
+        if not plan_in_predict and planning != "subgoal":
+            raise ValueError(
+                f"plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in training "
+                f"only), got planning={planning!r}"
+            )
         self.planning = planning
+        self.plan_in_predict = plan_in_predict
         self.planning_lookahead = planning_lookahead
         self.planning_resolution = planning_resolution
         self.planning_value_threshold = planning_value_threshold
@@ -287,6 +297,9 @@ class DIPPER(HierarchicalAlgorithm):
             script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
             self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
 
+    def _predict_plans(self) -> bool:
+        return self.subgoal_graph is not None and self.plan_in_predict
+
     def _option_metric_keys(self) -> tuple[str, ...]:
         planned = ("planned_share",) if self.planning == "subgoal" else ()
         return (*super()._option_metric_keys(), *planned)
@@ -305,9 +318,16 @@ class DIPPER(HierarchicalAlgorithm):
     # ---------------------------------------------------------------------------------------------------- acting
 
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
+        return self._proposals(observation, deterministic, self.subgoal_graph if self.plan_in_predict else None)
+
+    def _collecting_high_level_actions(self, observation: DictObs) -> np.ndarray:
+        return self._proposals(observation, deterministic=False, graph=self.subgoal_graph)
+
+    def _proposals(self, observation: DictObs, deterministic: bool, graph: SubgoalGraph | None) -> np.ndarray:
+        """The policy's subgoals, with the planner's waypoints where ``graph`` knows a path (``planning``)."""
         planned = None
-        if self.subgoal_graph is not None:
-            planned = self._with_planned_goals(observation, self.subgoal_graph)
+        if graph is not None:
+            planned = self._with_planned_goals(observation, graph)
         policy_input = planned if planned is not None and self.planning == "waypoint" else observation
         actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
         actions = np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
