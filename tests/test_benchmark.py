@@ -175,7 +175,8 @@ def test_report_per_task(tmp_path, monkeypatch):
             write_run(tmp_path, "dipper", env_id, seed, [0.0, 0.5, 1.0], hierarchical=True, training_successes=training)
             write_run(tmp_path, "sac", env_id, seed, [0.0, 0.25, 0.5], hierarchical=False)
     write_run(tmp_path, "dipper-no-plan", ENV_ID, 0, [0.0, 0.25, 0.25], hierarchical=True)
-    # A seed still running: the curves stop at the evaluations every seed has.
+    # A seed still running: the table and the mean curve stop at the evaluations every seed has; the CSV has all of
+    # them, and the figure continues the finished seed alone as a dotted line.
     write_run(tmp_path, "hier", ENV_ID, 0, [0.0, 0.0, 0.25], hierarchical=True)
     write_run(tmp_path, "hier", ENV_ID, 1, [0.0, 0.5], hierarchical=True, finished=False)
     names = ["dipper", "dipper-no-plan", "hier", "sac"]
@@ -205,11 +206,15 @@ def test_report_per_task(tmp_path, monkeypatch):
     assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs"
     assert {line.split(",")[0] for line in csv[1:]} == set(envs)
     assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000,," in csv
+    assert f"{ENV_ID},hier,0,3000,0.2500,1.0000,-3.0000,," in csv
     assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000,30.0000" in csv
     assert figure == tmp_path / "figures" / "report.png" and figure.exists()
-    lines = [[line.get_label() for line in ax.get_lines()] for ax in drawn[0].axes]
+    lines = [[line.get_label() for line in ax.get_lines() if line.get_linestyle() == "-"] for ax in drawn[0].axes]
     assert lines == [["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"], ["DIPPER", "SAC+HER"]]
     np.testing.assert_allclose(drawn[0].axes[0].get_lines()[2].get_ydata(), curves[ENV_ID]["hier"].success.mean(axis=0))
+    (continued,) = [line for ax in drawn[0].axes for line in ax.get_lines() if line.get_linestyle() == ":"]
+    np.testing.assert_allclose(continued.get_xdata(), [2000, 3000])
+    np.testing.assert_allclose(continued.get_ydata(), [0.0, 0.25])
 
 
 def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys):

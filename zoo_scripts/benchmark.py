@@ -472,14 +472,25 @@ def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | No
 
 
 @dataclass
+class SeedCurve:
+    """Every evaluation of one seed's run."""
+
+    steps: np.ndarray  # (evaluations,) primitive steps
+    success: np.ndarray  # (evaluations,) success rates
+    metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (evaluations,), NaN where not logged
+
+
+@dataclass
 class Curves:
-    """The evaluations of one algorithm (or variant) on one task, at the evaluations every seed has reached."""
+    """The evaluations of one algorithm (or variant) on one task, at the evaluations every seed has reached (the
+    table's mean), and each seed's own (the CSV, the figure's continuation of seeds that went further)."""
 
     seeds: list[int]
     finished: list[bool]  # per seed: the run has ended (result.json); a running or cut-off run is partial
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (seeds, evaluations) success rates
     metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (seeds, evaluations), NaN where not logged
+    per_seed: list[SeedCurve]
 
 
 def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves | None:
@@ -501,16 +512,26 @@ def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves |
             last_runs.append(runs[-1])
     if not curves:
         return None
+    logged: dict[str, list[plot.Curve | None]] = {
+        key: [plot.metric_curve(log, f"rollout/{key}") if log is not None else None for log in logs] for key in OPTION_METRICS
+    }
+    logged[TRAINING_SUCCESS] = [plot.training_success_curve(run) for run in last_runs]
+    logged[PREFERENCE_PAIRS] = [plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None for log in logs]
+
+    def at(steps: np.ndarray) -> list[dict[str, np.ndarray]]:
+        """Per seed, each metric's last logged value at or before each of ``steps``."""
+        return [
+            {key: np.array([plot.value_at(logged[key][seed], step) for step in steps]) for key in CSV_METRICS}
+            for seed in range(len(curves))
+        ]
+
     steps, success = plot.align(curves)
-    metrics = {}
-    for key in OPTION_METRICS:
-        logged = [plot.metric_curve(log, f"rollout/{key}") if log is not None else None for log in logs]
-        metrics[key] = np.array([[plot.value_at(curve, step) for step in steps] for curve in logged])
-    training = [plot.training_success_curve(run) for run in last_runs]
-    metrics[TRAINING_SUCCESS] = np.array([[plot.value_at(curve, step) for step in steps] for curve in training])
-    pairs = [plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None for log in logs]
-    metrics[PREFERENCE_PAIRS] = np.array([[plot.value_at(curve, step) for step in steps] for curve in pairs])
-    return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics)
+    common = at(steps)
+    metrics = {key: np.array([seed[key] for seed in common]) for key in CSV_METRICS}
+    per_seed = [
+        SeedCurve(seed_steps, seed_success, at(seed_steps)[index]) for index, (seed_steps, seed_success) in enumerate(curves)
+    ]
+    return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics, per_seed=per_seed)
 
 
 def final_mean(curves: Curves, key: str, number_format: str = ".2f") -> str:
@@ -534,11 +555,11 @@ def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tu
         if run_curves is None:
             continue
         curves[name] = run_curves
-        for index, seed in enumerate(run_curves.seeds):
-            for step_index, step in enumerate(run_curves.steps):
-                metrics = [run_curves.metrics[key][index, step_index] for key in CSV_METRICS]
+        for seed, seed_curve in zip(run_curves.seeds, run_curves.per_seed, strict=True):
+            for step_index, step in enumerate(seed_curve.steps):
+                metrics = [seed_curve.metrics[key][step_index] for key in CSV_METRICS]
                 values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
-                csv_rows.append(f"{env_id},{name},{seed},{int(step)},{run_curves.success[index, step_index]:.4f},{values}")
+                csv_rows.append(f"{env_id},{name},{seed},{int(step)},{seed_curve.success[step_index]:.4f},{values}")
         final = run_curves.success[:, -1]
         reached = np.flatnonzero(run_curves.success.mean(axis=0) >= 0.5)
         to_half = f"{int(run_curves.steps[reached[0]]):,}" if reached.size else "not reached"
@@ -571,7 +592,7 @@ def report(
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.csv").write_text("\n".join(csv_rows) + "\n")
     panels = {
-        env_id: {run: [(run_curves.steps, success) for success in run_curves.success] for run, run_curves in task.items()}
+        env_id: {run: [(seed.steps, seed.success) for seed in run_curves.per_seed] for run, run_curves in task.items()}
         for env_id, task in curves.items()
     }
     figure = plot.save(plot.draw_success(panels), figures_dir / name, ["png"])[0]

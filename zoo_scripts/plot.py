@@ -193,7 +193,8 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
     """Success rate against primitive steps, one panel per env (four to a row), one line per name in it.
 
     :param panels: per env id, the seeds' success curves of each line, keyed by algorithm (or ``<algo>-<variant>``)
-        name; each line is the mean over seeds with a band of one standard deviation (:func:`aggregate`)
+        name; each line is the mean over seeds with a band of one standard deviation (:func:`aggregate`), where every
+        seed has been measured; seeds that went further (the others still running) go on as thin dotted lines
     """
     names = list(dict.fromkeys(name for lines in panels.values() for name in lines))
     colors = _colors(names)
@@ -205,6 +206,10 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
             steps, mean, std = aggregate(curves)
             ax.plot(steps, mean, color=colors[name], label=label(name))
             ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[name], alpha=0.2)
+            for seed_steps, seed_success in curves:
+                further = seed_steps >= steps[-1]
+                if len(curves) > 1 and seed_steps[-1] > steps[-1]:
+                    ax.plot(seed_steps[further], seed_success[further], color=colors[name], linewidth=0.8, linestyle=":")
         ax.set(title=env_id, xlabel="primitive steps", ylim=(-0.02, 1.02))
         ax.grid(alpha=0.3)
     for ax in axes.flat[len(panels) :]:
