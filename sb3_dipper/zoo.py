@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import io
 import json
 import os
 import runpy
@@ -53,6 +54,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import CSVOutputFormat
 
+from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.dac import DAC
 from sb3_dipper.dipper import DIPPER
 from sb3_dipper.dpo_flat import DPOFlat
@@ -441,8 +443,9 @@ def set_aside_part(run_folder: Path) -> None:
     """Move the monitor files and ``progress.csv`` of the part trained so far into ``<run>/part_<k>/``.
 
     The resumed part writes its own (both are created afresh, ``progress.csv`` exclusively); ``zoo_scripts/plot.py``
-    reads the ``progress.csv`` of every part in step order. A part killed after its last checkpoint logged steps the
-    resumed run trains again: those rows are dropped, so every step is logged once.
+    reads the ``progress.csv`` and the monitor files of every part in order. A part killed after its last checkpoint
+    logged steps and episodes the resumed run trains again: those ``progress.csv`` rows (by step) and monitor episodes
+    (those that ended after the checkpoint was written) are dropped, so every step and episode is logged once.
     """
     logs = [*run_folder.glob("*.monitor.csv"), *run_folder.glob("progress.csv")]
     if not logs:
@@ -456,6 +459,24 @@ def set_aside_part(run_folder: Path) -> None:
         rows = pd.read_csv(progress)
         if STEPS_KEY in rows:
             rows[rows[STEPS_KEY] <= checkpoint_steps(run_folder)].to_csv(progress, index=False)
+    checkpoint_time = (run_folder / RESUME_FOLDER / RESUME_MODEL).stat().st_mtime
+    for monitor in part.glob("*.monitor.csv"):
+        drop_episodes_after(monitor, checkpoint_time)
+
+
+def drop_episodes_after(monitor: Path, wall_time: float) -> None:
+    """Keep the episodes of an SB3 monitor file that ended by ``wall_time`` (seconds since the epoch).
+
+    SB3's ``Monitor`` writes a ``#{"t_start": ...}`` line, then one row per finished episode with ``t``, its end in
+    seconds after ``t_start``.
+    """
+    header, _, table = monitor.read_text().partition("\n")
+    if not header.startswith("#") or not table.strip():
+        return
+    episodes = pd.read_csv(io.StringIO(table))
+    kept = episodes[json.loads(header[1:])["t_start"] + episodes["t"] <= wall_time]
+    if len(kept) < len(episodes):
+        write_bytes_atomically(monitor, f"{header}\n{kept.to_csv(index=False)}".encode())
 
 
 def continue_evaluations(callbacks: list[BaseCallback], num_timesteps: int, n_envs: int, run_folder: Path) -> None:

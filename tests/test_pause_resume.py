@@ -2,6 +2,7 @@
 continues the run in its folder to its whole budget, and ``benchmark.py learning`` does both by rerunning a command."""
 
 import json
+import os
 import subprocess
 import sys
 import zipfile
@@ -74,14 +75,23 @@ def test_the_resumed_evaluation_continues_the_recorded_one(tmp_path):
 
 def test_setting_a_part_aside_keeps_only_the_steps_of_the_checkpoint(tmp_path):
     fake_checkpoint(tmp_path, num_timesteps=200)
-    (tmp_path / "0.monitor.csv").write_text("#\nr,l,t\n")
+    checkpoint_time = 1_000_000.0
+    os.utime(tmp_path / RESUME_FOLDER / RESUME_MODEL, (checkpoint_time, checkpoint_time))
+    # Episodes that ended 90 s and 10 s before the checkpoint was written, and one 100 s after (trained again).
+    header = '#{"t_start": 999900.0, "env_id": "FetchPushFixed-v0"}'
+    (tmp_path / "0.monitor.csv").write_text(
+        f"{header}\nr,l,t,is_success\n-50.0,50,10.0,0.0\n-3.0,50,90.0,1.0\n-50.0,50,200.0,0.0\n"
+    )
+    (tmp_path / "1.monitor.csv").write_text(f"{header}\nr,l,t,is_success\n")  # no episode finished yet
     pd.DataFrame({"time/total_timesteps": [100, 200, 300], "rollout/low_value": [-1.0, -2.0, -3.0]}).to_csv(
         tmp_path / "progress.csv", index=False
     )
     set_aside_part(tmp_path)
     assert not (tmp_path / "progress.csv").exists() and not (tmp_path / "0.monitor.csv").exists()
-    assert (tmp_path / "part_1" / "0.monitor.csv").exists()
     assert pd.read_csv(tmp_path / "part_1" / "progress.csv")["time/total_timesteps"].tolist() == [100, 200]
+    monitor = (tmp_path / "part_1" / "0.monitor.csv").read_text().splitlines()
+    assert monitor[0] == header and pd.read_csv(tmp_path / "part_1" / "0.monitor.csv", skiprows=1)["t"].tolist() == [10, 90]
+    assert (tmp_path / "part_1" / "1.monitor.csv").read_text() == f"{header}\nr,l,t,is_success\n"
     set_aside_part(tmp_path)  # nothing logged since: no empty part
     assert sorted(path.name for path in tmp_path.iterdir()) == ["part_1", RESUME_FOLDER]
 
