@@ -518,18 +518,15 @@ def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves |
     logged[TRAINING_SUCCESS] = [plot.training_success_curve(run) for run in last_runs]
     logged[PREFERENCE_PAIRS] = [plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None for log in logs]
 
-    def at(steps: np.ndarray) -> list[dict[str, np.ndarray]]:
-        """Per seed, each metric's last logged value at or before each of ``steps``."""
-        return [
-            {key: np.array([plot.value_at(logged[key][seed], step) for step in steps]) for key in CSV_METRICS}
-            for seed in range(len(curves))
-        ]
+    def at(seed: int, steps: np.ndarray) -> dict[str, np.ndarray]:
+        """Each metric of the ``seed``-th run: its last logged value at or before each of ``steps``."""
+        return {key: np.array([plot.value_at(logged[key][seed], step) for step in steps]) for key in CSV_METRICS}
 
     steps, success = plot.align(curves)
-    common = at(steps)
+    common = [at(seed, steps) for seed in range(len(curves))]
     metrics = {key: np.array([seed[key] for seed in common]) for key in CSV_METRICS}
     per_seed = [
-        SeedCurve(seed_steps, seed_success, at(seed_steps)[index]) for index, (seed_steps, seed_success) in enumerate(curves)
+        SeedCurve(seed_steps, seed_success, at(seed, seed_steps)) for seed, (seed_steps, seed_success) in enumerate(curves)
     ]
     return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics, per_seed=per_seed)
 

@@ -207,8 +207,8 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
             ax.plot(steps, mean, color=colors[name], label=label(name))
             ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[name], alpha=0.2)
             for seed_steps, seed_success in curves:
-                further = seed_steps >= steps[-1]
-                if len(curves) > 1 and seed_steps[-1] > steps[-1]:
+                if seed_steps[-1] > steps[-1]:
+                    further = seed_steps >= steps[-1]
                     ax.plot(seed_steps[further], seed_success[further], color=colors[name], linewidth=0.8, linestyle=":")
         ax.set(title=env_id, xlabel="primitive steps", ylim=(-0.02, 1.02))
         ax.grid(alpha=0.3)
