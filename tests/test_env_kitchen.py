@@ -10,9 +10,11 @@ import pytest
 from stable_baselines3.common.env_checker import check_env
 
 import sb3_dipper  # noqa: F401  (registers the env ids)
-from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper import DIPPER
+from sb3_dipper.common.subgoals import ElementSubgoalSpace, SubgoalSpace
 from sb3_dipper.envs import EXPERTS
 from sb3_dipper.envs.kitchen import ENV_ID, FrankaKitchenMicrowaveBurnerExpert, FrankaKitchenOrderedEnv
+from tests.conftest import tiny_model
 
 # qpos addresses of the microwave hinge and of the bottom burner's knob and slide (the achieved goal, in this order).
 MICROWAVE, KNOB, SLIDE = 22, 11, 12
@@ -165,6 +167,41 @@ def test_declares_its_subgoal_space(env):
     obs, _ = env.reset(seed=0)
     for goal in (obs["achieved_goal"], obs["desired_goal"]):
         assert np.all(space.low < goal) and np.all(goal < space.high)
+
+
+def test_element_subgoals_ask_each_task_element_done_or_at_rest():
+    element_env = gym.make(ENV_ID, element_subgoals=True)
+    space = element_env.unwrapped.subgoal_space
+    assert isinstance(space, ElementSubgoalSpace) and space.elements == ((0,), (1, 2))
+    np.testing.assert_allclose(space.done, GOAL)
+    obs, _ = element_env.reset(seed=0)
+    np.testing.assert_allclose(space.start, obs["achieved_goal"], atol=1e-3)
+    # Hinge asked done, knob at rest: reached with the door open and the knob off, not with both done.
+    door_only = space.to_world(np.array([0.5, -0.5, 0.5]))
+    np.testing.assert_allclose(door_only, [GOAL[0], *space.start[1:]], atol=1e-6)
+    still = np.zeros(9, dtype=np.float32)
+    set_elements(element_env, door=DOOR_OPEN, knob=KNOB_OFF)
+    door_open, *_ = element_env.step(still)
+    set_elements(element_env, door=DOOR_OPEN, knob=KNOB_ON)
+    both_done, *_ = element_env.step(still)
+    assert space.compute_reward(door_open["achieved_goal"], door_only) == 0.0
+    assert space.compute_reward(both_done["achieved_goal"], door_only) == -1.0
+    assert space.compute_reward(both_done["achieved_goal"], space.to_world(np.ones(3))) == 0.0
+    element_env.close()
+
+
+@pytest.mark.parametrize("planning", ["off", "subgoal"])
+def test_dipper_proposes_only_element_subgoals(planning):
+    element_env = gym.make(ENV_ID, element_subgoals=True, max_episode_steps=45)
+    model = tiny_model(DIPPER, element_env, option_steps=15, planning=planning)
+    model.learn(300)
+    space = model.subgoal_space
+    combinations = space.to_world(np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]]))
+    buffer = model.lower.replay_buffer
+    proposed = buffer.observations["desired_goal"][: buffer.pos, 0]
+    assert len(proposed) == 300
+    assert np.all(np.isclose(proposed[:, None], combinations[None], atol=1e-6).all(-1).any(-1))
+    element_env.close()
 
 
 def test_tasks_and_upstream_arguments():

@@ -95,6 +95,92 @@ class SubgoalSpace:
         return -(self.distance(achieved_subgoal, subgoal) > self.threshold).astype(np.float32)
 
 
+@dataclass(frozen=True, eq=False)
+class ElementSubgoalSpace(SubgoalSpace):
+    """Subgoals that ask, for each task element, "done" or "as at the start", as the authors' kitchen code does.
+
+    The achieved goal is split into task elements (a microwave hinge, a burner knob and slide, ...). The higher level
+    still acts in ``[-1, 1]^d``, but a subgoal asks each element for one of two things: its entries equal the
+    element's goal (``done``) when the unit action of the element's first entry is positive, else its start values
+    (``start``). The authors' PIPER code binarises its 30-D kitchen subgoal this way (per element, the goal or zero),
+    so a subgoal says which elements to have done, not where in between. An element is reached when it is within
+    ``threshold`` of its subgoal values (the env's per-element completion test), and a subgoal when every element is:
+    :meth:`distance` is the largest element distance.
+
+    :meth:`to_world_tensor` passes gradients straight through the snapping, as through :meth:`SubgoalSpace.to_world`,
+    so losses that differentiate a lower value with respect to the proposal (DIPPER's value term) still can.
+
+    :param elements: the entries of each element, together every entry once
+    :param done: the subgoal values of a done element, one per entry (the task's goal)
+    :param start: the subgoal values of an element not asked for, one per entry (its reset values)
+    """
+
+    elements: tuple[tuple[int, ...], ...] = ()
+    done: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    start: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    _first_entries: np.ndarray = field(init=False, repr=False)
+    _owner: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        elements = tuple(tuple(int(entry) for entry in element) for element in self.elements)
+        if not elements or any(not element for element in elements):
+            raise ValueError(f"ElementSubgoalSpace elements must be non-empty groups of entries, got {self.elements}")
+        if sorted(entry for element in elements for entry in element) != list(range(self.dim)):
+            raise ValueError(f"ElementSubgoalSpace elements {elements} must hold every entry 0..{self.dim - 1} exactly once")
+        for name in ("done", "start"):
+            values = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            if values.shape != (self.dim,) or np.any(values < self.low) or np.any(values > self.high):
+                raise ValueError(
+                    f"ElementSubgoalSpace {name} must be {self.dim} values inside [low, high], got {getattr(self, name)}"
+                )
+            object.__setattr__(self, name, values)
+        object.__setattr__(self, "elements", elements)
+        object.__setattr__(self, "_first_entries", np.array([element[0] for element in elements]))
+        owner = np.empty(self.dim, dtype=np.int64)
+        for index, element in enumerate(elements):
+            owner[list(element)] = index
+        object.__setattr__(self, "_owner", owner)
+
+    def _asked_done(self, unit_actions: np.ndarray) -> np.ndarray:
+        """Per entry: is its element asked to be done?"""
+        return (unit_actions[..., self._first_entries] > 0.0)[..., self._owner]
+
+    def to_world(self, unit_actions: np.ndarray) -> np.ndarray:
+        asked_done = self._asked_done(np.asarray(unit_actions))
+        return np.where(asked_done, self.done, self.start).astype(np.float32)
+
+    def to_world_tensor(self, unit_actions: th.Tensor) -> th.Tensor:
+        continuous = super().to_world_tensor(unit_actions)
+        first_entries = th.as_tensor(self._first_entries, device=unit_actions.device)
+        owner = th.as_tensor(self._owner, device=unit_actions.device)
+        asked_done = (unit_actions.index_select(-1, first_entries) > 0.0).index_select(-1, owner)
+        done, start = (
+            th.as_tensor(value, dtype=unit_actions.dtype, device=unit_actions.device) for value in (self.done, self.start)
+        )
+        snapped = th.where(asked_done, done, start)
+        return continuous + (snapped - continuous).detach()
+
+    def to_unit(self, subgoals: np.ndarray) -> np.ndarray:
+        """The unit action whose subgoal asks done exactly for the elements done in ``subgoals``: +1 or -1 per entry."""
+        subgoals = np.asarray(subgoals, dtype=np.float64)
+        element_done = np.stack(
+            [
+                np.linalg.norm(subgoals[..., list(element)] - self.done[list(element)], axis=-1) < self.threshold
+                for element in self.elements
+            ],
+            axis=-1,
+        )
+        return np.where(element_done[..., self._owner], 1.0, -1.0).astype(np.float32)
+
+    def distance(self, achieved_subgoal: np.ndarray, subgoal: np.ndarray) -> np.ndarray:
+        difference = np.asarray(achieved_subgoal) - np.asarray(subgoal)
+        return np.max(
+            np.stack([np.linalg.norm(difference[..., list(element)], axis=-1) for element in self.elements], axis=-1),
+            axis=-1,
+        )
+
+
 SubgoalSpaceFactory = Callable[[gym.Env], SubgoalSpace]
 _REGISTRY: dict[str, SubgoalSpaceFactory] = {}
 

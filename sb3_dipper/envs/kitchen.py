@@ -36,7 +36,7 @@ from gymnasium_robotics.envs.franka_kitchen.kitchen_env import (
     KitchenEnv,
 )
 
-from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.subgoals import ElementSubgoalSpace, SubgoalSpace
 
 ENV_ID = "FrankaKitchenMicrowaveBurner-v0"
 TASKS: tuple[str, ...] = ("microwave", "bottom burner")
@@ -103,15 +103,19 @@ class FrankaKitchenOrderedEnv(KitchenEnv):
 
     The episode never terminates (upstream's ``terminate_on_tasks_completed`` is off); use a time limit.
     The unwrapped env carries ``subgoal_space``: a box over the achieved goal from the joints' ranges (see
-    :func:`joint_goal_bounds`) with the completion threshold as its radius.
+    :func:`joint_goal_bounds`) with the completion threshold as its radius, or with ``element_subgoals`` the same box
+    as an :class:`~sb3_dipper.common.subgoals.ElementSubgoalSpace`, whose subgoals are each element done or at rest.
 
     :param tasks: task elements in the order they must be completed (any upstream task with limited 1-dof joints, so
         not ``kettle``)
+    :param element_subgoals: declare an :class:`~sb3_dipper.common.subgoals.ElementSubgoalSpace` instead of the box:
+        a subgoal asks each task element to be done (its goal) or as at the start (its reset values), as the authors'
+        PIPER code binarises its kitchen subgoals, rather than for any joint position in between
     :param kwargs: passed to gymnasium-robotics' ``KitchenEnv`` and its robot (``render_mode``, ``robot_noise_ratio``,
         ``object_noise_ratio``, ``frame_skip``, ``width``, ``height``, ...)
     """
 
-    def __init__(self, tasks: Sequence[str] = TASKS, **kwargs: Any) -> None:
+    def __init__(self, tasks: Sequence[str] = TASKS, element_subgoals: bool = False, **kwargs: Any) -> None:
         tasks = tuple(tasks)
         if not tasks or len(set(tasks)) != len(tasks):
             raise ValueError(f"tasks must be a non-empty sequence without repetitions, got {tasks}")
@@ -122,7 +126,7 @@ class FrankaKitchenOrderedEnv(KitchenEnv):
             tasks_to_complete=list(tasks), terminate_on_tasks_completed=False, remove_task_when_completed=False, **kwargs
         )
         # Upstream pickles (and copies) itself by calling its class with its own arguments: record ours instead.
-        EzPickle.__init__(self, tasks=tasks, **kwargs)
+        EzPickle.__init__(self, tasks=tasks, element_subgoals=element_subgoals, **kwargs)
         self.tasks = tasks
         self.completion_threshold = float(BONUS_THRESH)
         sizes = [len(OBS_ELEMENT_INDICES[task]) for task in tasks]
@@ -143,6 +147,16 @@ class FrankaKitchenOrderedEnv(KitchenEnv):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(self.model.nu,), dtype=np.float32)
         low, high = joint_goal_bounds(self.model, tasks)
         self.subgoal_space = SubgoalSpace(low=low, high=high, threshold=self.completion_threshold)
+        if element_subgoals:
+            start = np.concatenate([self.robot_env.init_qpos[OBS_ELEMENT_INDICES[task]] for task in tasks])
+            self.subgoal_space = ElementSubgoalSpace(
+                low=low,
+                high=high,
+                threshold=self.completion_threshold,
+                elements=tuple(tuple(range(part.start, part.stop)) for part in self._goal_slices),
+                done=self._desired_goal,
+                start=start,
+            )
         self._steps = 0
         self._first_completion: list[int | None] = [None] * len(tasks)
 
