@@ -5,8 +5,8 @@ the CPU profile (the paper's configuration, with clipped lower targets, without 
 switches, the hyperparams/dipper.yml entry) solved the task at the 15k or 30k evaluation, while the untrained policy, flat
 SAC+HER and HIER never did. The solution does not last on every configuration and seeds 1-2 reach it late or not at all,
 so this checks that learning happens (the demonstration teaches the grasp), not the paper's final success rate. The
-task is deterministic, so an evaluation is all or nothing. The other paper tasks have no measured learning signal at a
-CPU budget yet, so they have no check here.
+task is deterministic, so an evaluation is all or nothing. The paper tasks other than these two have no measured
+learning signal at a CPU budget yet, so they have no check here.
 
 On `FetchPushFixed-v0` the deterministic evaluation first succeeds late and at a seed-dependent point (30k and 150k on
 seeds 0 and 1), so the push check reads the training episodes instead: with the push entry's switches, the stochastic
