@@ -43,6 +43,20 @@ class SuccessEvery(BaseCallback):
         return True
 
 
+class EarlySuccess(BaseCallback):
+    """SB3's training success (the last 100 episodes' ``is_success``) when ``after_steps`` primitive steps have passed."""
+
+    def __init__(self, after_steps: int):
+        super().__init__()
+        self.after_steps = after_steps
+        self.success: float | None = None
+
+    def _on_step(self) -> bool:
+        if self.success is None and self.num_timesteps >= self.after_steps:
+            self.success = float(np.mean(self.model.ep_success_buffer))
+        return True
+
+
 @pytest.mark.slow
 def test_dipper_learns_to_pick_and_place_from_its_one_demonstration():
     model, _, _ = make_model("dipper", PICK_AND_PLACE, seed=0)
@@ -63,17 +77,3 @@ def test_dipper_starts_pushing_in_training(record_property):
     record_property("training_success", (early.success, final))
     assert early.success is not None
     assert final >= 0.05 and final > early.success, (early.success, final)
-
-
-class EarlySuccess(BaseCallback):
-    """SB3's training success (the last 100 episodes' ``is_success``) when ``after_steps`` primitive steps have passed."""
-
-    def __init__(self, after_steps: int):
-        super().__init__()
-        self.after_steps = after_steps
-        self.success: float | None = None
-
-    def _on_step(self) -> bool:
-        if self.success is None and self.num_timesteps >= self.after_steps:
-            self.success = float(np.mean(self.model.ep_success_buffer))
-        return True

@@ -163,22 +163,16 @@ class ElementSubgoalSpace(SubgoalSpace):
 
     def to_unit(self, subgoals: np.ndarray) -> np.ndarray:
         """The unit action whose subgoal asks done exactly for the elements done in ``subgoals``: +1 or -1 per entry."""
-        subgoals = np.asarray(subgoals, dtype=np.float64)
-        element_done = np.stack(
-            [
-                np.linalg.norm(subgoals[..., list(element)] - self.done[list(element)], axis=-1) < self.threshold
-                for element in self.elements
-            ],
-            axis=-1,
-        )
+        element_done = self._element_distances(subgoals, self.done) < self.threshold
         return np.where(element_done[..., self._owner], 1.0, -1.0).astype(np.float32)
 
     def distance(self, achieved_subgoal: np.ndarray, subgoal: np.ndarray) -> np.ndarray:
-        difference = np.asarray(achieved_subgoal) - np.asarray(subgoal)
-        return np.max(
-            np.stack([np.linalg.norm(difference[..., list(element)], axis=-1) for element in self.elements], axis=-1),
-            axis=-1,
-        )
+        return np.max(self._element_distances(achieved_subgoal, subgoal), axis=-1)
+
+    def _element_distances(self, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        """Per element, the Euclidean distance over its entries: shape ``(..., len(elements))``."""
+        difference = np.asarray(first, dtype=np.float64) - np.asarray(second, dtype=np.float64)
+        return np.stack([np.linalg.norm(difference[..., list(element)], axis=-1) for element in self.elements], axis=-1)
 
 
 SubgoalSpaceFactory = Callable[[gym.Env], SubgoalSpace]

@@ -146,8 +146,9 @@ class FrankaKitchenOrderedEnv(KitchenEnv):
         # Upstream's actions are float64; SB3 works in float32 (the robot clips and converts them either way).
         self.action_space = spaces.Box(-1.0, 1.0, shape=(self.model.nu,), dtype=np.float32)
         low, high = joint_goal_bounds(self.model, tasks)
-        self.subgoal_space = SubgoalSpace(low=low, high=high, threshold=self.completion_threshold)
-        if element_subgoals:
+        if not element_subgoals:
+            self.subgoal_space = SubgoalSpace(low=low, high=high, threshold=self.completion_threshold)
+        else:
             start = np.concatenate([self.robot_env.init_qpos[OBS_ELEMENT_INDICES[task]] for task in tasks])
             self.subgoal_space = ElementSubgoalSpace(
                 low=low,
