@@ -104,6 +104,7 @@ import plot
 from configs import make_env, make_model, torch_threads
 from plot import LABELS, label
 
+from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.zoo import RESUME_FOLDER, RESUME_MODEL, saved_steps
 
 REPO = Path(__file__).resolve().parent.parent
@@ -173,9 +174,7 @@ def write_section(name: str, body: str, command: str, path: Path = BENCHMARKS_MD
         text = text[: text.index(start)] + section + text[text.index(end) + len(end) :]
     else:
         text = f"{text.rstrip()}\n\n{section}\n"
-    temporary = path.with_name(f"{path.name}.tmp")
-    temporary.write_text(text)
-    temporary.replace(path)
+    write_bytes_atomically(path, text.encode())
 
 
 # ------------------------------------------------------------------------------------------------------------- throughput
@@ -223,8 +222,9 @@ def run_throughput(args: argparse.Namespace) -> None:
     seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
     seconds = {algo: [chunk / args.steps for chunk in chunks] for algo, chunks in seconds.items()}
     per_step = {algo: statistics.median(values) for algo, values in seconds.items()}
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-    (RESULTS_DIR / "throughput.json").write_text(json.dumps({"seconds_per_step": seconds, "median": per_step}, indent=1))
+    write_bytes_atomically(
+        RESULTS_DIR / "throughput.json", json.dumps({"seconds_per_step": seconds, "median": per_step}, indent=1).encode()
+    )
     rows = [f"| {LABELS[algo]} | {per_step[algo] * 1e3:.2f} | {per_step[algo] / per_step['sac']:.2f} |" for algo in models]
     body = (
         f"Seconds per primitive step on `{args.env}`, one env, lower networks {args.net_arch}, batch 256, one lower "
@@ -282,8 +282,8 @@ def run_profiles(args: argparse.Namespace) -> None:
         + "\n".join(rows)
     )
     if args.write:
-        RESULTS_DIR.mkdir(parents=True, exist_ok=True)
-        csv.write_text("env,algo,n_envs,train_steps_per_second,env_steps_per_second\n" + "\n".join(records) + "\n")
+        header = "env,algo,n_envs,train_steps_per_second,env_steps_per_second"
+        write_bytes_atomically(csv, "\n".join([header, *records, ""]).encode())
         write_section(args.name, body, "python zoo_scripts/benchmark.py profiles " + " ".join(sys.argv[2:]))
     print(body)
 
@@ -420,9 +420,7 @@ def resumable(run: Path) -> bool:
 def add_part_seconds(run: Path, seconds: float) -> float:
     """Add a part's training time to the run's ``parts.json``; the run's time so far."""
     total = seconds + (float(json.loads((run / PARTS).read_text())["seconds"]) if (run / PARTS).exists() else 0.0)
-    temporary = run / f"{PARTS}.tmp"
-    temporary.write_text(json.dumps({"seconds": total}))
-    temporary.replace(run / PARTS)
+    write_bytes_atomically(run / PARTS, json.dumps({"seconds": total}).encode())
     return total
 
 
@@ -463,9 +461,7 @@ def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | No
         )
     seconds = add_part_seconds(runs[-1], seconds)  # a resumed run's time is the sum of its parts
     result = dict(algo=algo, variant=variant, env=env_id, seed=seed, seconds=seconds)
-    temporary = runs[-1] / f"{RESULT}.tmp"
-    temporary.write_text(json.dumps(result))
-    temporary.replace(runs[-1] / RESULT)
+    write_bytes_atomically(runs[-1] / RESULT, json.dumps(result).encode())
     curve = plot.evaluation_curve(runs[-1])
     success = f", success {curve[1][-1]:.2f} at its last evaluation" if curve is not None else ""
     return f"{run_name(algo, variant)} {env_id} seed {seed}: {seconds / 60:.1f} min{success}"
@@ -586,8 +582,7 @@ def report(
     for env_id in envs:
         tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds)
         csv_rows += rows
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.csv").write_text("\n".join(csv_rows) + "\n")
+    write_bytes_atomically(out / f"{name}.csv", ("\n".join(csv_rows) + "\n").encode())
     panels = {
         env_id: {run: [(seed.steps, seed.success) for seed in run_curves.per_seed] for run, run_curves in task.items()}
         for env_id, task in curves.items()

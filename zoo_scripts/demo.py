@@ -22,6 +22,8 @@ from stable_baselines3.common.callbacks import EvalCallback
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from sb3_dipper.common.files import write_atomically
+
 from configs import episode_successes, load_entry, make_env, make_model, torch_threads
 
 ENV_ID = "PointMazeFourRooms-v0"
@@ -42,7 +44,7 @@ def plot_success_curve(evaluations: Path, output: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")
     fig.tight_layout()
-    fig.savefig(output, dpi=120)
+    write_atomically(output, lambda handle: fig.savefig(handle, format="png", dpi=120))
     plt.close(fig)
 
 

@@ -23,6 +23,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
+from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.envs.demos import default_demonstrations
 
@@ -96,7 +97,7 @@ def main() -> None:
         "oracle": run_episodes(model, env, args.episodes, oracle_subgoals(env_id, model.option_steps, model)),
         "higher_level": run_episodes(model, env, args.episodes, None),
     }
-    (args.run / "oracle_subgoals.json").write_text(json.dumps(results, indent=1))
+    write_bytes_atomically(args.run / "oracle_subgoals.json", json.dumps(results, indent=1).encode())
     print(json.dumps(results, indent=1))
 
 

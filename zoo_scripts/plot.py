@@ -27,6 +27,7 @@ import argparse
 import math
 import re
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 
 import matplotlib
@@ -38,6 +39,8 @@ import matplotlib.pyplot as plt
 from matplotlib.artist import Artist
 from matplotlib.figure import Figure
 from stable_baselines3.common.monitor import LoadMonitorResultsError, load_results
+
+from sb3_dipper.common.files import write_atomically, write_bytes_atomically
 
 # A curve: x (primitive steps) and y, one value per x.
 Curve = tuple[np.ndarray, np.ndarray]
@@ -361,10 +364,9 @@ def plot_iqm(table: pd.DataFrame) -> Figure:
 
 def save(fig: Figure, path: Path, formats: list[str]) -> list[Path]:
     """Write ``fig`` as ``path.<format>`` for every format and close it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     written = [path.with_suffix(f".{fmt}") for fmt in formats]
-    for file in written:
-        fig.savefig(file, dpi=150, bbox_inches="tight")
+    for file, fmt in zip(written, formats, strict=True):
+        write_atomically(file, partial(fig.savefig, format=fmt, dpi=150, bbox_inches="tight"))
     plt.close(fig)
     return written
 
@@ -405,7 +407,7 @@ def main() -> None:
         if args.iqm:
             table = final_success_iqm(args.log_folders, args.algos, args.envs, args.window, args.reps)
             written += save(plot_iqm(table), args.out / "final_success_iqm", args.formats)
-            table.to_csv(args.out / "final_success_iqm.csv", index=False)
+            write_bytes_atomically(args.out / "final_success_iqm.csv", table.to_csv(index=False).encode())
             written.append(args.out / "final_success_iqm.csv")
     except FileNotFoundError as error:
         parser.exit(1, f"error: {error}\n")
