@@ -2,6 +2,7 @@
 
 import csv
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -22,11 +23,13 @@ def test_a_clone_of_the_fixed_pick_and_place_demonstration_solves_it_closed_loop
     # The fixed task starts where its demonstration started and the expert's 50 steps are smooth: cloning alone is
     # enough there (BENCHMARKS.md, "what one demonstration teaches"). An unfitted network fails.
     demonstration = default_demonstrations("FetchPickAndPlaceFixed-v0").first_episodes(1)
-    untrained = run_clone(fit_clone(demonstration, [64, 64], steps=0), "FetchPickAndPlaceFixed-v0", demonstration, 0, 0.05)
+    env = gym.make("FetchPickAndPlaceFixed-v0")
+    untrained = run_clone(fit_clone(demonstration, [64, 64], steps=0), env, demonstration, 0, 0.05)
     assert untrained["success"] == 0.0 and untrained["departure_step"] != ""
     clone = fit_clone(demonstration, [64, 64], steps=1500)
     assert clone.fit_loss < 1e-3
-    episode = run_clone(clone, "FetchPickAndPlaceFixed-v0", demonstration, 0, 0.05)
+    episode = run_clone(clone, env, demonstration, 0, 0.05)
+    env.close()
     assert episode == {"success": 1.0, "departure_step": "", "episode_steps": 50}
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import csv
 import io
-import itertools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import gymnasium as gym
 import numpy as np
 import torch as th
+from stable_baselines3.common.torch_layers import create_mlp
 
 import sb3_dipper  # noqa: F401  (registers our env ids)
 from sb3_dipper.common.demonstrations import Demonstrations
@@ -62,11 +62,7 @@ def fit_clone(demonstrations: Demonstrations, net_arch: list[int], steps: int, b
     mean, std = inputs.mean(0), inputs.std(0) + 1e-2
     features = th.as_tensor((inputs - mean) / std, dtype=th.float32)
     targets = th.as_tensor(demonstrations.actions, dtype=th.float32)
-    sizes = [features.shape[1], *net_arch]
-    layers: list[th.nn.Module] = []
-    for n_in, n_out in itertools.pairwise(sizes):
-        layers += [th.nn.Linear(n_in, n_out), th.nn.ReLU()]
-    network = th.nn.Sequential(*layers, th.nn.Linear(sizes[-1], targets.shape[1]), th.nn.Tanh())
+    network = th.nn.Sequential(*create_mlp(features.shape[1], targets.shape[1], net_arch, squash_output=True))
     optimizer = th.optim.Adam(network.parameters(), lr=1e-3)
     loss = th.zeros(())
     for _ in range(steps):
@@ -86,20 +82,16 @@ def first_departure(states: np.ndarray, demonstrated: np.ndarray, tolerance: flo
     return int(np.argmax(far)) if far.any() else None
 
 
-def run_clone(clone: Clone, env_id: str, demonstration: Demonstrations, episode_seed: int, tolerance: float) -> dict:
+def run_clone(clone: Clone, env: gym.Env, demonstration: Demonstrations, episode_seed: int, tolerance: float) -> dict:
     """One closed-loop episode of the clone from ``env.reset(seed=episode_seed)``: its success (``is_success`` at the
     last step, as the benchmarks evaluate), departure step from the demonstration's states and length."""
-    env = gym.make(env_id)
-    try:
-        observation, _ = env.reset(seed=episode_seed)
-        states = []
-        done, info = False, dict[str, Any]()
-        while not done:
-            observation, _, terminated, truncated, info = env.step(clone.act(observation))
-            states.append(observation["observation"])
-            done = terminated or truncated
-    finally:
-        env.close()
+    observation, _ = env.reset(seed=episode_seed)
+    states = []
+    done, info = False, dict[str, Any]()
+    while not done:
+        observation, _, terminated, truncated, info = env.step(clone.act(observation))
+        states.append(observation["observation"])
+        done = terminated or truncated
     departure = first_departure(np.array(states), demonstration.next_observations["observation"], tolerance)
     return {
         "success": float(info.get("is_success", 0.0)),
@@ -112,16 +104,20 @@ def clone_rows(env_id: str, net_arch: list[int], fit_steps: int, episodes: int, 
     """Fit a clone of ``env_id``'s default demonstration and run it for episode seeds ``0 .. episodes - 1``."""
     demonstration = default_demonstrations(env_id).first_episodes(1)
     clone = fit_clone(demonstration, net_arch, fit_steps)
-    return [
-        {
-            "env": env_id,
-            "fit_steps": fit_steps,
-            "fit_loss": f"{clone.fit_loss:.2e}",
-            "episode_seed": seed,
-            **run_clone(clone, env_id, demonstration, seed, tolerance),
-        }
-        for seed in range(episodes)
-    ]
+    env = gym.make(env_id)
+    try:
+        return [
+            {
+                "env": env_id,
+                "fit_steps": fit_steps,
+                "fit_loss": f"{clone.fit_loss:.2e}",
+                "episode_seed": seed,
+                **run_clone(clone, env, demonstration, seed, tolerance),
+            }
+            for seed in range(episodes)
+        ]
+    finally:
+        env.close()
 
 
 def main(argv: list[str] | None = None) -> None:
