@@ -1,16 +1,19 @@
 """zoo_scripts/oracle_subgoals.py: a trained model driven by the demonstration's subgoals, beside its own higher level."""
 
+import csv
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dipper import DIPPER
 from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OBJECT_REST_Z
-from zoo_scripts.oracle_subgoals import oracle_subgoals
+from sb3_dipper.envs.demos import default_demonstrations
+from zoo_scripts.oracle_subgoals import oracle_subgoals, run_episodes
 
 SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "oracle_subgoals.py"
 
@@ -49,3 +52,61 @@ def test_the_script_reads_a_zoo_run_folder_and_writes_its_report(tmp_path):
         assert 0.0 <= report[driver]["success"] <= 1.0 and 0.0 <= report[driver]["options_reached"] <= 1.0
     # The first oracle subgoal is where the object rests, reached by leaving it there.
     assert report["oracle"]["options_reached"] >= 1 / 8
+
+
+def test_every_episode_starts_where_the_demonstration_started_on_a_random_task():
+    env_id = "FetchPickAndPlace-v4"
+    env = make_vec_env(env_id, n_envs=1, seed=123)
+    model = DIPPER(
+        "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
+        n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
+        low_policy_kwargs=dict(net_arch=[16]), policy_kwargs=dict(net_arch=[16]),
+    )  # fmt: skip
+    starts = []
+    reset = env.reset
+
+    def recorded_reset():
+        observation = reset()
+        starts.append(observation["observation"][0].copy())
+        return observation
+
+    env.reset = recorded_reset
+    result = run_episodes(model, env, 2, oracle_subgoals(env_id, 7, model))
+    demonstration = default_demonstrations(env_id).first_episodes(1)
+    assert len(starts) == 2 and 0.0 <= result["options_reached"] <= 1.0
+    for start in starts:
+        np.testing.assert_allclose(start, demonstration.observations["observation"][0], atol=1e-6)
+
+
+def test_checkpoints_give_one_csv_row_per_model_and_driver(tmp_path):
+    run = tmp_path / "dipper" / f"{ENV_ID}_1"
+    run.mkdir(parents=True)
+    model = tiny_pick_and_place_model()
+    model.learn(60)
+    first = str(model.num_timesteps)
+    model.save(run / "rl_model_60_steps.zip")
+    model.learn(60, reset_num_timesteps=False)
+    final = str(model.num_timesteps)
+    model.save(run / f"{ENV_ID}.zip")
+    command = [sys.executable, str(SCRIPT), str(run), "--algo", "dipper", "--checkpoints", "--csv", str(tmp_path / "c.csv")]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    with open(tmp_path / "c.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert [(row["steps"], row["driver"]) for row in rows] == [
+        (first, "oracle"), (first, "higher_level"), (final, "oracle"), (final, "higher_level")
+    ]  # fmt: skip
+    assert (run / "oracle_subgoals.json").exists()
+
+
+def test_a_flat_model_is_refused_with_the_reason(tmp_path):
+    run = tmp_path / "sac" / f"{ENV_ID}_1"
+    run.mkdir(parents=True)
+    SAC("MultiInputPolicy", make_vec_env(ENV_ID, n_envs=1, seed=0), learning_starts=10, batch_size=8).save(
+        run / f"{ENV_ID}.zip"
+    )
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), str(run), "--algo", "sac"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 2
+    assert "not a hierarchical algorithm" in done.stderr

@@ -9,6 +9,7 @@ builtins.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -98,6 +99,16 @@ def trained_run(
         env = VecNormalize.load(str(statistics), env)
         env.training, env.norm_reward = False, False
     return ALGORITHMS[algo].load(model_file or run / f"{env_id}.zip", env=env), env
+
+
+def checkpoints(run: Path) -> list[Path]:
+    """The checkpoints rl-zoo3 kept in ``run`` (``rl_model_<steps>_steps.zip``), in the order they were saved."""
+    steps = {}
+    for path in run.glob("rl_model_*_steps.zip"):
+        match = re.fullmatch(r"rl_model_(\d+)_steps\.zip", path.name)
+        if match:
+            steps[path] = int(match.group(1))
+    return sorted(steps, key=steps.__getitem__)
 
 
 def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int) -> list[float]:

@@ -1,13 +1,19 @@
 """Which level fails? A trained hierarchical model driven by the demonstration's subgoals, beside its own higher level.
 
     python zoo_scripts/oracle_subgoals.py logs/dipper/FetchPickAndPlaceFixed-v0_1 --algo dipper
+    python zoo_scripts/oracle_subgoals.py runs/p9/default/seed_0/dipper/FetchFourRoomMazeFixed-v0_1 --algo dipper \
+        --checkpoints --csv curve.csv
 
-On a fixed task (the env starts where the single default demonstration started), the demonstration's achieved
-subgoals at option boundaries (steps K, 2K, ..., the last step) are a sequence of subgoals the expert reached. Driving
-the trained lower level with them measures the lower level alone: if it reaches them, the lower level has learnt what
-the demonstration shows, and a failure of the full policy lies with the higher level's proposals. The script prints,
-for the oracle subgoals and for the model's own higher level (both deterministic), the episode success and the share of
-options that ended within the subgoal threshold, and writes them as ``oracle_subgoals.json`` in the zoo run folder.
+Every episode starts where the task's single default demonstration started (the env reset with the demonstration's
+seed, 0; on the fixed tasks every seed starts there), so the demonstration's achieved subgoals at option boundaries
+(steps K, 2K, ..., the last step) are a sequence of subgoals the expert reached from that start, on the random tasks
+too. Driving the trained lower level with them measures the lower level alone: if it reaches them, the lower level has
+learnt what the demonstration shows, and a failure of the full policy lies with the higher level's proposals. The
+script prints, for the oracle subgoals and for the model's own higher level (both deterministic), the episode success
+and the share of options that ended within the subgoal threshold, and writes them as ``oracle_subgoals.json`` in the
+zoo run folder. Policy and env are deterministic from one start, so one episode (the default) says it all. With
+``--checkpoints`` it also measures every checkpoint the run kept (``rl_model_<steps>_steps.zip``), to follow when the
+lower level learns and loses the demonstrated behaviour; ``--csv`` writes one row per model and driver.
 """
 
 from __future__ import annotations
@@ -28,7 +34,10 @@ from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.envs.demos import default_demonstrations
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import trained_run
+from configs import checkpoints, trained_run
+
+# ``default_demonstrations`` records the expert from ``reset(seed=0)``.
+DEMONSTRATION_SEED = 0
 
 
 def oracle_subgoals(env_id: str, option_steps: int, model: HierarchicalAlgorithm) -> np.ndarray:
@@ -43,12 +52,14 @@ def oracle_subgoals(env_id: str, option_steps: int, model: HierarchicalAlgorithm
 
 
 def run_episodes(model: HierarchicalAlgorithm, env: VecEnv, n_episodes: int, subgoals: np.ndarray | None) -> dict[str, float]:
-    """Deterministic episodes; ``subgoals`` (one row per option) replaces the higher level when given."""
+    """Deterministic episodes from the demonstration's start; ``subgoals`` (one row per option) replaces the higher
+    level when given."""
     assert model.subgoal_space is not None
     space, option_steps = model.subgoal_space, model.option_steps
     successes: list[float] = []
     reached: list[float] = []
     while len(successes) < n_episodes:
+        env.seed(DEMONSTRATION_SEED)
         obs = env.reset()
         raw = env.get_original_obs() if isinstance(env, VecNormalize) else obs
         n_envs = env.num_envs
@@ -83,22 +94,47 @@ def run_episodes(model: HierarchicalAlgorithm, env: VecEnv, n_episodes: int, sub
     return {"success": float(np.mean(successes[:n_episodes])), "options_reached": float(np.mean(reached))}
 
 
+def measure(
+    run: Path, algo: str, env_id: str, n_episodes: int, model_file: Path | None
+) -> tuple[int, dict[str, dict[str, float]]]:
+    """Both drivers on the run's model (or on ``model_file``), and the primitive steps that model had trained."""
+    model, env = trained_run(run, algo, env_id, seed=DEMONSTRATION_SEED, model_file=model_file)
+    if not isinstance(model, HierarchicalAlgorithm):
+        raise ValueError(f"{run}: the model is a {type(model).__name__}, not a hierarchical algorithm; it has no subgoals")
+    results = {
+        "oracle": run_episodes(model, env, n_episodes, oracle_subgoals(env_id, model.option_steps, model)),
+        "higher_level": run_episodes(model, env, n_episodes, None),
+    }
+    env.close()
+    return model.num_timesteps, results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a zoo run folder (logs/<algo>/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", required=True, help="zoo name of the model's algorithm (dipper, hier, ...)")
-    parser.add_argument("--env", help="task (default: the run folder's name without its _<n>)")
-    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/<algo>/<env>_<n>) holding <env>.zip")
+    parser.add_argument("--algo", required=True, help="zoo name of the models' algorithm (dipper, hier, ...)")
+    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
+    parser.add_argument("--episodes", type=int, default=1)
+    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
+    parser.add_argument("--csv", type=Path, help="also write every model's results to this CSV")
     args = parser.parse_args()
-    env_id = args.env or args.run.name.rsplit("_", 1)[0]
-    model, env = trained_run(args.run, args.algo, env_id, seed=20_000)
-    assert isinstance(model, HierarchicalAlgorithm)
-    results = {
-        "oracle": run_episodes(model, env, args.episodes, oracle_subgoals(env_id, model.option_steps, model)),
-        "higher_level": run_episodes(model, env, args.episodes, None),
-    }
-    write_bytes_atomically(args.run / "oracle_subgoals.json", json.dumps(results, indent=1).encode())
-    print(json.dumps(results, indent=1))
+    rows = ["run,steps,driver,success,options_reached"]
+    for run in args.runs:
+        env_id = args.env or run.name.rsplit("_", 1)[0]
+        for model_file in [*(checkpoints(run) if args.checkpoints else []), None]:  # None: the run's final model
+            try:
+                steps, results = measure(run, args.algo, env_id, args.episodes, model_file)
+            except ValueError as error:
+                parser.error(str(error))
+            if model_file is None:
+                write_bytes_atomically(run / "oracle_subgoals.json", json.dumps(results, indent=1).encode())
+            print(run, steps, json.dumps(results), flush=True)
+            rows += [
+                f"{run},{steps},{driver},{result['success']:.4f},{result['options_reached']:.4f}"
+                for driver, result in results.items()
+            ]
+    if args.csv is not None:
+        write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 from pathlib import Path
 
@@ -35,7 +34,7 @@ from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.dipper import DIPPER
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import episode_successes, trained_run
+from configs import checkpoints, episode_successes, trained_run
 
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 
@@ -71,16 +70,6 @@ def reset_higher_policy(model: DIPPER, seed: int) -> None:
         reset = getattr(module, "reset_parameters", None)
         if callable(reset):
             reset()
-
-
-def checkpoints(run: Path) -> list[Path]:
-    """The checkpoints rl-zoo3 kept in ``run`` (``rl_model_<steps>_steps.zip``), in the order they were saved."""
-    steps = {}
-    for path in run.glob("rl_model_*_steps.zip"):
-        match = re.fullmatch(r"rl_model_(\d+)_steps\.zip", path.name)
-        if match:
-            steps[path] = int(match.group(1))
-    return sorted(steps, key=steps.__getitem__)
 
 
 def measure(
