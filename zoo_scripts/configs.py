@@ -31,7 +31,14 @@ ALGORITHMS: dict[str, type[BaseAlgorithm]] = {**ZOO_ALGORITHMS, "sac": SAC, "tqc
 
 # The zoo's own keys: they configure the env and the run, not the algorithm's constructor.
 ZOO_KEYS = ("n_timesteps", "n_envs", "normalize", "env_kwargs", "monitor_kwargs", "env_wrapper", "callback", "frame_stack")
-EVALUATED_KEYS = ("policy_kwargs", "low_policy_kwargs", "replay_buffer_kwargs", "high_replay_buffer_kwargs", "monitor_kwargs")
+EVALUATED_KEYS = (
+    "policy_kwargs",
+    "low_policy_kwargs",
+    "replay_buffer_kwargs",
+    "high_replay_buffer_kwargs",
+    "monitor_kwargs",
+    "normalize",
+)
 NAMESPACE = {"dict": dict, "nn": th.nn, "th": th, "HerReplayBuffer": HerReplayBuffer}
 
 

@@ -24,6 +24,7 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
@@ -50,6 +51,7 @@ from sb3_dipper.common.low_level import (
     SubgoalNormalizer,
     SubgoalVecEnv,
     low_level_observation_space,
+    sac_dead_units,
     sac_torch_save_params,
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
@@ -549,6 +551,9 @@ class HierarchicalAlgorithm(CheckedLoading):
         for key, values in self._option_metrics.items():
             if len(values) > 0:
                 self.logger.record(f"rollout/{key}", safe_mean(values))
+        if isinstance(self.lower, SAC):  # a learned lower level (RAPS's primitives are scripted)
+            for network, share in sac_dead_units(self.lower, self.low_normalizer).items():
+                self.logger.record(f"train/low_{network}_dead_units", share)
         self.logger.record("time/fps", fps)
         self.logger.record("time/time_elapsed", int(time_elapsed), exclude="tensorboard")
         self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")

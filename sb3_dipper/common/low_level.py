@@ -254,6 +254,55 @@ def sac_value_gap(
     return old - new
 
 
+def dead_unit_share(network: th.nn.Module, inputs: th.Tensor) -> float | None:
+    """The largest share of dead units in one hidden ReLU layer of ``network`` (an ``nn.Sequential``) on ``inputs``.
+
+    A unit is dead on ``inputs`` when it outputs zero for every row. No gradient reaches a dead unit's weights, so it
+    stays dead; once a whole layer is dead the network computes the same output for every input (a lower actor that
+    acts the same whatever its state and subgoal). ``None`` when ``network`` has no ReLU layer.
+    """
+    largest: float | None = None
+    hidden = inputs
+    with th.no_grad():
+        for layer in network:  # type: ignore[attr-defined]
+            hidden = layer(hidden)
+            if isinstance(layer, th.nn.ReLU):
+                share = float((hidden <= 0).all(dim=0).float().mean())
+                largest = share if largest is None else max(largest, share)
+    return largest
+
+
+def sac_dead_units(sac: SAC, normalizer: SubgoalNormalizer | None = None, n_rows: int = 256) -> dict[str, float]:
+    """:func:`dead_unit_share` of the actor and of the first Q-network of ``sac`` on the last (about) ``n_rows``
+    transitions of its replay buffer, normalised as in training; empty before the buffer holds any.
+
+    Reading the newest stored rows draws no random numbers, so logging it leaves training unchanged.
+    """
+    buffer = sac.replay_buffer
+    assert buffer is not None
+    stored = buffer.buffer_size if buffer.full else buffer.pos
+    if stored == 0:
+        return {}
+    steps = min(stored, -(-n_rows // buffer.n_envs))
+    rows = (buffer.pos - 1 - np.arange(steps)) % buffer.buffer_size
+    observations: DictObs = {
+        key: value[rows].reshape(-1, *value.shape[2:])
+        for key, value in buffer.observations.items()  # type: ignore[union-attr,attr-defined]
+    }
+    if normalizer is not None:
+        observations = normalizer.normalize_obs(observations)
+    obs = {key: th.as_tensor(value, dtype=th.float32, device=sac.device) for key, value in observations.items()}
+    actions = th.as_tensor(buffer.actions[rows].reshape(len(rows) * buffer.n_envs, -1), device=sac.device)
+    with th.no_grad():
+        actor_features = sac.actor.extract_features(obs, sac.actor.features_extractor)
+        critic_features = sac.critic.extract_features(obs, sac.critic.features_extractor)
+    shares = {
+        "actor": dead_unit_share(sac.actor.latent_pi, actor_features),
+        "critic": dead_unit_share(sac.critic.q_networks[0], th.cat((critic_features, actions), dim=1)),
+    }
+    return {name: share for name, share in shares.items() if share is not None}
+
+
 class SACLowLevel:
     """The option layer's view of a lower SAC: batched actions, values, and the sink that fills its buffer.
 
