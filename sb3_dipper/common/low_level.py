@@ -273,18 +273,18 @@ def dead_unit_share(network: th.nn.Module, inputs: th.Tensor) -> float | None:
 
 
 def sac_dead_units(sac: SAC, normalizer: SubgoalNormalizer | None = None, n_rows: int = 256) -> dict[str, float]:
-    """:func:`dead_unit_share` of the actor and of the first Q-network of ``sac`` on the last (about) ``n_rows``
-    transitions of its replay buffer, normalised as in training; empty before the buffer holds any.
+    """:func:`dead_unit_share` of the actor and of the first Q-network of ``sac`` on about ``n_rows`` transitions
+    spread evenly over its replay buffer, normalised as in training; empty before the buffer holds any.
 
-    Reading the newest stored rows draws no random numbers, so logging it leaves training unchanged.
+    Evenly spaced rows draw no random numbers, so logging this leaves training unchanged; spread over the buffer, they
+    do not mistake a unit silent on one stretch of similar states (the newest ones, say) for a dead one.
     """
     buffer = sac.replay_buffer
     assert buffer is not None
     stored = buffer.buffer_size if buffer.full else buffer.pos
     if stored == 0:
         return {}
-    steps = min(stored, -(-n_rows // buffer.n_envs))
-    rows = (buffer.pos - 1 - np.arange(steps)) % buffer.buffer_size
+    rows = np.unique(np.linspace(0, stored - 1, -(-n_rows // buffer.n_envs)).round().astype(np.int64))
     observations: DictObs = {
         key: value[rows].reshape(-1, *value.shape[2:])
         for key, value in buffer.observations.items()  # type: ignore[union-attr,attr-defined]
