@@ -1,18 +1,24 @@
 """DIPPER on the paper's tasks at their CPU profiles: opt-in learning checks (`make test-slow`).
 
-Measured (BENCHMARKS.md, "the paper's tasks on a CPU"): on `FetchPickAndPlaceFixed-v0`, every seed-0 run of DIPPER at
-the CPU profile (the paper's configuration, with clipped lower targets, without the Q-filter, and with the maze's
-switches, the hyperparams/dipper.yml entry) solved the task at the 15k or 30k evaluation, while the untrained policy, flat
-SAC+HER and HIER never did. The solution does not last on every configuration and seeds 1-2 reach it late or not at all,
-so this checks that learning happens (the demonstration teaches the grasp), not the paper's final success rate. The
-task is deterministic, so an evaluation is all or nothing. The paper tasks other than these two have no measured
-learning signal at a CPU budget yet, so they have no check here.
+Measured (BENCHMARKS.md, "the paper's tasks on a CPU"). On the fixed pick-and-place and push the deterministic
+evaluation is all or nothing (the tasks are deterministic) and first succeeds late and at a seed-dependent point
+(pick-and-place at the `dipper` entry, with bc_coef 0.02: 135k, 135k and 30k on seeds 0, 1, 2; push: 30k and 150k on
+seeds 0 and 1), so these checks read the training episodes instead: the stochastic policy's success over its last 100
+training episodes (SB3's `rollout/success_rate`). At 105k it was 0.14, 0.12 and 0.05 on pick-and-place (seeds 0-2) and
+0.11 and 0.16 at 110k on push (seeds 0, 1), where the paper's configuration stayed at 0.00 on push and the first 100
+episodes of every run were at 0.00-0.02. So this checks that learning happens (the demonstration teaches the grasp,
+the lower level learns the push), not the paper's final success rate. The push test's own run (seed 0, 21 minutes on
+a shared core) ended at 0.10, from 0.00 at 10k.
 
-On `FetchPushFixed-v0` the deterministic evaluation first succeeds late and at a seed-dependent point (30k and 150k on
-seeds 0 and 1), so the push check reads the training episodes instead: with the push entry's switches, the stochastic
-policy's success over its last 100 training episodes (SB3's `rollout/success_rate`) was 0.11 and 0.16 at 110k on seeds
-0 and 1, where the paper's configuration was at 0.00 and the first 100 episodes of every run at 0.00-0.02; this test's
-own run (seed 0, 21 minutes on a shared core) ends at 0.10, from 0.00 at 10k.
+On the Fetch mazes and the kitchen the CPU profiles normalise observations because, unnormalised, the lower actor's
+ReLU units died (BENCHMARKS.md section 13). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the
+demonstration shows: driven by the demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and
+1 (none untrained; none at any point to 20k on seeds 1 and 2 unnormalised). On the random maze no learning signal has
+been measured at a CPU budget yet; what is checked there is the fix itself: the lower actor keeps its units alive
+(unnormalised, 97 % of one layer was dead at 5k). The kitchen has no check: nothing was learnt there, and its units die
+over hundreds of thousands of steps, too slowly for a short run to tell normalised from raw inputs (at 30k both had
+about 40 % dead). The random pick-and-place and push have no check either: nothing was learnt there (BENCHMARKS.md,
+sections 8 and 11) and their networks stay alive without normalisation.
 """
 
 import sys
@@ -21,26 +27,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_dipper.common.low_level import sac_dead_units
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
-from configs import episode_successes, load_entry, make_env, make_model
+from configs import load_entry, make_env, make_model
+from oracle_subgoals import oracle_subgoals, run_episodes
 
 PICK_AND_PLACE = "FetchPickAndPlaceFixed-v0"
 PUSH = "FetchPushFixed-v0"
-
-
-class SuccessEvery(BaseCallback):
-    """Deterministic success over a few episodes every ``freq`` primitive steps."""
-
-    def __init__(self, eval_env, freq: int, n_episodes: int):
-        super().__init__()
-        self.eval_env, self.freq, self.n_episodes = eval_env, freq, n_episodes
-        self.successes: list[float] = []
-
-    def _on_step(self) -> bool:
-        if self.num_timesteps % self.freq < self.model.n_envs:
-            self.successes.append(float(np.mean(episode_successes(self.model, self.eval_env, self.n_episodes))))
-        return True
+MAZE = "FetchFourRoomMazeFixed-v0"
+RANDOM_MAZE = "FetchFourRoomMaze-v0"
 
 
 class EarlySuccess(BaseCallback):
@@ -58,22 +56,43 @@ class EarlySuccess(BaseCallback):
 
 
 @pytest.mark.slow
-def test_dipper_learns_to_pick_and_place_from_its_one_demonstration():
-    model, _, _ = make_model("dipper", PICK_AND_PLACE, seed=0)
-    eval_env = make_env(PICK_AND_PLACE, load_entry("dipper", PICK_AND_PLACE), seed=10_000, n_envs=2)
-    untrained = float(np.mean(episode_successes(model, eval_env, 4)))
-    callback = SuccessEvery(eval_env, freq=15_000, n_episodes=4)
-    model.learn(45_000, callback=callback)
-    assert untrained == 0.0
-    assert max(callback.successes) == 1.0, callback.successes
-
-
-@pytest.mark.slow
-def test_dipper_starts_pushing_in_training(record_property):
-    model, _, _ = make_model("dipper", PUSH, seed=0)
+@pytest.mark.parametrize(("env_id", "least"), [(PICK_AND_PLACE, 0.03), (PUSH, 0.05)])
+def test_dipper_starts_solving_the_task_in_training(env_id, least, record_property):
+    model, _, _ = make_model("dipper", env_id, seed=0)
     early = EarlySuccess(after_steps=10_000)
     model.learn(105_000, callback=early)
     final = float(np.mean(model.ep_success_buffer))
     record_property("training_success", (early.success, final))
     assert early.success is not None
-    assert final >= 0.05 and final > early.success, (early.success, final)
+    assert final >= least and final > early.success, (early.success, final)
+
+
+def demonstrated_subgoals_reached(model, env_id: str) -> float:
+    """The share of the demonstration's option-end subgoals the lower level reaches from the demonstration's start."""
+    env = make_env(env_id, load_entry("dipper", env_id), seed=0, n_envs=1)
+    training_env = model.get_vec_normalize_env()
+    if training_env is not None:
+        env.obs_rms, env.training = training_env.obs_rms, False
+    reached = run_episodes(model, env, 1, oracle_subgoals(env_id, model.option_steps, model))["options_reached"]
+    env.close()
+    return reached
+
+
+@pytest.mark.slow
+def test_dipper_lower_level_learns_the_demonstrated_way_through_the_fixed_maze(record_property):
+    model, _, _ = make_model("dipper", MAZE, seed=0)
+    assert isinstance(model.get_env(), VecNormalize)
+    untrained = demonstrated_subgoals_reached(model, MAZE)
+    model.learn(15_000)
+    trained = demonstrated_subgoals_reached(model, MAZE)
+    record_property("subgoals_reached", (untrained, trained))
+    assert untrained == 0.0 and trained >= 0.8, (untrained, trained)
+
+
+@pytest.mark.slow
+def test_normalised_inputs_keep_the_random_maze_lower_actor_alive(record_property):
+    model, _, _ = make_model("dipper", RANDOM_MAZE, seed=0)
+    model.learn(10_000)
+    dead = sac_dead_units(model.lower, model.low_normalizer)
+    record_property("dead_units", dead)
+    assert dead["actor"] <= 0.8, dead
