@@ -8,8 +8,11 @@ builtins.
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +26,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
+from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.zoo import ZOO_ALGORITHMS
 
 HYPERPARAMS_DIR = Path(__file__).resolve().parent.parent / "hyperparams"
@@ -116,6 +120,39 @@ def checkpoints(run: Path) -> list[Path]:
         if match:
             steps[path] = int(match.group(1))
     return sorted(steps, key=steps.__getitem__)
+
+
+def measure_runs(
+    parser: argparse.ArgumentParser,
+    args: argparse.Namespace,
+    measure: Callable[[Path, str, Path | None], tuple[int, dict[str, dict[str, float]]]],
+    report: str,
+    columns: tuple[str, str, str],
+) -> None:
+    """Measure every run of ``args.runs`` with ``measure(run, env_id, model_file)`` (``model_file`` ``None``: the run's
+    final model), also at every checkpoint the run kept with ``args.checkpoints``; print each result, write the final
+    model's as ``<run>/<report>`` (JSON) and, with ``args.csv``, one CSV row per model and case.
+
+    :param columns: the CSV's case column and its two metrics, e.g. ``("driver", "success", "options_reached")``
+    """
+    case_column, *metrics = columns
+    rows = [",".join(("run", "steps", case_column, *metrics))]
+    for run in args.runs:
+        env_id = args.env or run.name.rsplit("_", 1)[0]
+        for model_file in [*(checkpoints(run) if args.checkpoints else []), None]:
+            try:
+                steps, results = measure(run, env_id, model_file)
+            except ValueError as error:
+                parser.error(str(error))
+            if model_file is None:
+                write_bytes_atomically(run / report, json.dumps(results, indent=1).encode())
+            print(run, steps, json.dumps(results), flush=True)
+            rows += [
+                ",".join((str(run), str(steps), case, *(f"{result[metric]:.4f}" for metric in metrics)))
+                for case, result in results.items()
+            ]
+    if args.csv is not None:
+        write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
 
 
 def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int) -> list[float]:

@@ -19,7 +19,6 @@ lower level learns and loses the demonstrated behaviour; ``--csv`` writes one ro
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -29,12 +28,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
-from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.envs.demos import default_demonstrations
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import checkpoints, trained_run
+from configs import measure_runs, trained_run
 
 # ``default_demonstrations`` records the expert from ``reset(seed=0)``.
 DEMONSTRATION_SEED = 0
@@ -118,23 +116,13 @@ def main() -> None:
     parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     parser.add_argument("--csv", type=Path, help="also write every model's results to this CSV")
     args = parser.parse_args()
-    rows = ["run,steps,driver,success,options_reached"]
-    for run in args.runs:
-        env_id = args.env or run.name.rsplit("_", 1)[0]
-        for model_file in [*(checkpoints(run) if args.checkpoints else []), None]:  # None: the run's final model
-            try:
-                steps, results = measure(run, args.algo, env_id, args.episodes, model_file)
-            except ValueError as error:
-                parser.error(str(error))
-            if model_file is None:
-                write_bytes_atomically(run / "oracle_subgoals.json", json.dumps(results, indent=1).encode())
-            print(run, steps, json.dumps(results), flush=True)
-            rows += [
-                f"{run},{steps},{driver},{result['success']:.4f},{result['options_reached']:.4f}"
-                for driver, result in results.items()
-            ]
-    if args.csv is not None:
-        write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
+    measure_runs(
+        parser,
+        args,
+        lambda run, env_id, model_file: measure(run, args.algo, env_id, args.episodes, model_file),
+        "oracle_subgoals.json",
+        ("driver", "success", "options_reached"),
+    )
 
 
 if __name__ == "__main__":

@@ -19,7 +19,6 @@ from ``benchmark.py learning --save-freq``), so the four cases can be followed o
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -30,11 +29,10 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.dipper import DIPPER
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from configs import checkpoints, episode_successes, trained_run
+from configs import episode_successes, measure_runs, trained_run
 
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 
@@ -101,24 +99,13 @@ def main() -> None:
     parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
     parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     args = parser.parse_args()
-    rows = ["run,steps,case,success,planned_share"]
-    for run in args.runs:
-        env_id = args.env or run.name.rsplit("_", 1)[0]
-        models = [*(checkpoints(run) if args.checkpoints else []), None]  # None: the run's final model
-        for model_file in models:
-            try:
-                steps, results = measure(run, args.algo, env_id, args.episodes, model_file)
-            except ValueError as error:
-                parser.error(str(error))
-            if model_file is None:
-                write_bytes_atomically(run / "planner_share.json", json.dumps(results, indent=1).encode())
-            print(run, steps, json.dumps(results), flush=True)
-            rows += [
-                f"{run},{steps},{case},{result['success']:.4f},{result['planned_share']:.4f}"
-                for case, result in results.items()
-            ]
-    if args.csv is not None:
-        write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
+    measure_runs(
+        parser,
+        args,
+        lambda run, env_id, model_file: measure(run, args.algo, env_id, args.episodes, model_file),
+        "planner_share.json",
+        ("case", "success", "planned_share"),
+    )
 
 
 if __name__ == "__main__":
