@@ -7,15 +7,16 @@ seeds 0 and 1), so these checks read the training episodes instead: the stochast
 training episodes (SB3's `rollout/success_rate`). At 105k it was 0.14, 0.12 and 0.05 on pick-and-place (seeds 0-2) and
 0.11 and 0.16 at 110k on push (seeds 0, 1), where the paper's configuration stayed at 0.00 on push and the first 100
 episodes of every run were at 0.00-0.02. So this checks that learning happens (the demonstration teaches the grasp,
-the lower level learns the push), not the paper's final success rate. The push test's own run (seed 0, 21 minutes on
-a shared core) ended at 0.10, from 0.00 at 10k.
+the lower level learns the push), not the paper's final success rate. The tests' own runs (seed 0, on a shared core)
+ended at 0.10 from 0.00 at 10k on both tasks (pick-and-place 20 minutes, push 21).
 
 On the Fetch mazes and the kitchen the CPU profiles normalise observations because, unnormalised, the lower actor's
 ReLU units died (BENCHMARKS.md section 13). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the
 demonstration shows: driven by the demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and
-1 (none untrained; none at any point to 20k on seeds 1 and 2 unnormalised). On the random maze no learning signal has
-been measured at a CPU budget yet; what is checked there is the fix itself: the lower actor keeps its units alive
-(unnormalised, 97 % of one layer was dead at 5k). The kitchen has no check: nothing was learnt there, and its units die
+1 (none untrained; none at any point to 20k on seeds 1 and 2 unnormalised); the test's own run reached all 15 in 4
+minutes. On the random maze no learning signal has been measured at a CPU budget yet; what is checked there is the
+fix itself: the lower actor keeps its units alive (unnormalised, 97 % of one layer was dead at 5k and 10k; the test's
+own run, normalised, 54 % at 10k). The kitchen has no check: nothing was learnt there, and its units die
 over hundreds of thousands of steps, too slowly for a short run to tell normalised from raw inputs (at 30k both had
 about 40 % dead). The random pick-and-place and push have no check either: nothing was learnt there (BENCHMARKS.md,
 sections 8 and 11) and their networks stay alive without normalisation.
