@@ -125,13 +125,14 @@ def checkpoints(run: Path) -> list[Path]:
 def measure_runs(
     parser: argparse.ArgumentParser,
     args: argparse.Namespace,
-    measure: Callable[[Path, str, Path | None], tuple[int, dict[str, dict[str, float]]]],
+    measure: Callable[[Path, str, str, int, Path | None], tuple[int, dict[str, dict[str, float]]]],
     report: str,
     columns: tuple[str, str, str],
 ) -> None:
-    """Measure every run of ``args.runs`` with ``measure(run, env_id, model_file)`` (``model_file`` ``None``: the run's
-    final model), also at every checkpoint the run kept with ``args.checkpoints``; print each result, write the final
-    model's as ``<run>/<report>`` (JSON) and, with ``args.csv``, one CSV row per model and case.
+    """Measure every run of ``args.runs`` with ``measure(run, args.algo, env_id, args.episodes, model_file)``
+    (``model_file`` ``None``: the run's final model), also at every checkpoint the run kept with ``args.checkpoints``;
+    print each result, write the final model's as ``<run>/<report>`` (JSON) and, with ``args.csv``, one CSV row per
+    model and case.
 
     :param columns: the CSV's case column and its two metrics, e.g. ``("driver", "success", "options_reached")``
     """
@@ -141,7 +142,7 @@ def measure_runs(
         env_id = args.env or run.name.rsplit("_", 1)[0]
         for model_file in [*(checkpoints(run) if args.checkpoints else []), None]:
             try:
-                steps, results = measure(run, env_id, model_file)
+                steps, results = measure(run, args.algo, env_id, args.episodes, model_file)
             except ValueError as error:
                 parser.error(str(error))
             if model_file is None:

@@ -116,13 +116,7 @@ def main() -> None:
     parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     parser.add_argument("--csv", type=Path, help="also write every model's results to this CSV")
     args = parser.parse_args()
-    measure_runs(
-        parser,
-        args,
-        lambda run, env_id, model_file: measure(run, args.algo, env_id, args.episodes, model_file),
-        "oracle_subgoals.json",
-        ("driver", "success", "options_reached"),
-    )
+    measure_runs(parser, args, measure, "oracle_subgoals.json", ("driver", "success", "options_reached"))
 
 
 if __name__ == "__main__":

@@ -99,13 +99,7 @@ def main() -> None:
     parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
     parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     args = parser.parse_args()
-    measure_runs(
-        parser,
-        args,
-        lambda run, env_id, model_file: measure(run, args.algo, env_id, args.episodes, model_file),
-        "planner_share.json",
-        ("case", "success", "planned_share"),
-    )
+    measure_runs(parser, args, measure, "planner_share.json", ("case", "success", "planned_share"))
 
 
 if __name__ == "__main__":
