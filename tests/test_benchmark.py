@@ -30,6 +30,9 @@ TINY = [
 ]  # fmt: skip
 
 
+CSV_HEADER = "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs,finished"
+
+
 def learning_command(out: Path, *args: str) -> list[str]:
     """``benchmark.py learning`` on the fast maze with tiny budgets, writing into ``out``."""
     return [sys.executable, str(SCRIPT), "learning", "--envs", ENV_ID, *TINY, "--out", str(out), *args]
@@ -109,7 +112,7 @@ def test_the_report_and_plot_py_read_the_runs_alike(resumed):
     assert float(cells[6]) > 0  # subgoal distance, from progress.csv
     assert f"Figure: {out / 'learning.png'}" in rerun.stdout and (out / "learning.png").exists()
     csv = (out / "learning.csv").read_text().splitlines()
-    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs"
+    assert csv[0] == CSV_HEADER
     assert len(csv) == 1 + 2 * 2
     seeds = [out / "default" / f"seed_{seed}" for seed in (0, 1)]
     fig = plot.plot_success(seeds, ["hier"], [ENV_ID])
@@ -203,11 +206,11 @@ def test_report_per_task(tmp_path, monkeypatch):
     assert rows["HIER"].startswith("| HIER | 2 (1 partial) | 2,000 | 0.25 +- 0.25 | - | not reached | 1.25 |")
     assert len(tables["FetchPush-v4"].splitlines()) == 2 + 2
     csv = (tmp_path / "report.csv").read_text().splitlines()
-    assert csv[0] == "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs"
+    assert csv[0] == CSV_HEADER
     assert {line.split(",")[0] for line in csv[1:]} == set(envs)
-    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000,," in csv
-    assert f"{ENV_ID},hier,0,3000,0.2500,1.0000,-3.0000,," in csv
-    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000,30.0000" in csv
+    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000,,,0" in csv
+    assert f"{ENV_ID},hier,0,3000,0.2500,1.0000,-3.0000,,,1" in csv
+    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000,30.0000,1" in csv
     assert figure == tmp_path / "figures" / "report.png" and figure.exists()
     lines = [[line.get_label() for line in ax.get_lines() if line.get_linestyle() == "-"] for ax in drawn[0].axes]
     assert lines == [["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"], ["DIPPER", "SAC+HER"]]
@@ -215,6 +218,39 @@ def test_report_per_task(tmp_path, monkeypatch):
     (continued,) = [line for ax in drawn[0].axes for line in ax.get_lines() if line.get_linestyle() == ":"]
     np.testing.assert_allclose(continued.get_xdata(), [2000, 3000])
     np.testing.assert_allclose(continued.get_ydata(), [0.0, 0.25])
+
+
+def test_a_later_report_takes_the_runs_whose_folders_are_gone_from_the_earlier_csv(tmp_path):
+    """Run folders do not outlive their machine; the CSV does. A report from the CSV alone is the report from the
+    folders (tables, partial runs, CSV); a seed with a folder on disk is read from the folder, the others from the CSV."""
+    first, later = tmp_path / "first", tmp_path / "later"
+    for seed in (0, 1):
+        write_run(first, "dipper", ENV_ID, seed, [0.0, 0.5, 1.0], hierarchical=True, training_successes=[0, 1])
+        write_run(first, "sac", ENV_ID, seed, [0.0, 0.25, 0.5], hierarchical=False)
+    write_run(first, "hier", ENV_ID, 0, [0.0, 0.0, 0.25], hierarchical=True)
+    write_run(first, "hier", ENV_ID, 1, [0.0, 0.5], hierarchical=True, finished=False)
+    names, seeds = ["dipper", "hier", "sac"], [0, 1]
+    tables, _, _ = benchmark.report(first, names, [ENV_ID], seeds, "report", first)
+    previous = benchmark.read_report_csv(first / "report.csv")
+
+    later.mkdir()
+    again, curves, _ = benchmark.report(later, names, [ENV_ID], seeds, "report", later, previous)
+    assert again == tables
+    assert (later / "report.csv").read_text() == (first / "report.csv").read_text()
+    assert curves[ENV_ID]["hier"].finished == [True, False]
+
+    # A new run of seed 1 on disk replaces the CSV's seed 1; seed 0 still comes from the CSV.
+    write_run(later, "sac", ENV_ID, 1, [1.0, 1.0, 1.0], hierarchical=False)
+    mixed, _, _ = benchmark.report(later, names, [ENV_ID], seeds, "report", later, previous)
+    sac = next(line for line in mixed[ENV_ID].splitlines() if line.startswith("| SAC+HER |"))
+    assert sac.startswith("| SAC+HER | 2 | 3,000 | 0.75 +- 0.25 |")
+
+
+def test_a_csv_without_the_report_s_columns_is_refused(tmp_path):
+    old = tmp_path / "old.csv"
+    old.write_text(f"{CSV_HEADER.removesuffix(',finished')}\n{ENV_ID},dipper,0,1000,0.0,,,,\n")
+    with pytest.raises(ValueError, match=r"old\.csv lacks the columns \['finished'\]"):
+        benchmark.read_report_csv(old)
 
 
 def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys):
@@ -247,6 +283,11 @@ def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys)
     with pytest.raises(SystemExit):
         benchmark.main()
     assert "add --write" in capsys.readouterr().err
+
+    monkeypatch.setattr(sys, "argv", [*argv, "--previous-csv", str(tmp_path / "gone.csv")])
+    with pytest.raises(SystemExit):
+        benchmark.main()
+    assert "--previous-csv" in capsys.readouterr().err
 
 
 def test_overrides_become_the_zoo_s_flags():

@@ -44,7 +44,10 @@ hierarchical algorithms the subgoal distance and lower value last logged at or b
 preference-trained ones the labelled pairs in their dataset then: what a person would have labelled), the CSV
 ``OUT/<name>.csv`` with one row per seed and evaluation, and a figure with a panel per task (``plot.draw_success``).
 The tables are printed and the figure written to ``OUT/<name>.png``; only ``--write`` puts the section ``<name>`` into
-BENCHMARKS.md (``--benchmarks-md``) and the figure and the CSV into docs/benchmarks/ (``--figures-dir``). rl-zoo3
+BENCHMARKS.md (``--benchmarks-md``) and the figure and the CSV into docs/benchmarks/ (``--figures-dir``). Run folders
+do not outlive the machine they ran on; the CSV does: with ``--previous-csv docs/benchmarks/<name>.csv`` a later report
+takes every run it lists that has no folder in ``--out`` from it (its ``finished`` column keeps partial runs partial),
+so a table grows across machines and sessions (the CSV's steps, success and metrics are the table's). rl-zoo3
 evaluates every ``--eval-freq`` steps, so a budget that is not a multiple of it ends with its last evaluation up to
 ``--eval-freq`` steps before the end.
 
@@ -77,6 +80,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import csv
 import datetime
 import json
 import os
@@ -155,6 +159,8 @@ PREFERENCE_PAIRS_KEY = "train/high_preference_pairs"
 # The training episodes' success over the last 100 episodes, from the monitor files: the authors' "train success rate".
 TRAINING_SUCCESS = "train_success"
 CSV_METRICS = (*OPTION_METRICS, TRAINING_SUCCESS, PREFERENCE_PAIRS)
+# The report's CSV: a row per run and evaluation; ``finished`` is 1 once the run had trained its whole budget.
+CSV_COLUMNS = ("env", "algo", "seed", "timesteps", "success", *CSV_METRICS, "finished")
 
 
 # ------------------------------------------------------------------------------------------------------------- report
@@ -471,6 +477,8 @@ def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | No
 class SeedCurve:
     """Every evaluation of one seed's run."""
 
+    seed: int
+    finished: bool  # the run has ended (result.json); a running or cut-off run is partial
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (evaluations,) success rates
     metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (evaluations,), NaN where not logged
@@ -481,50 +489,88 @@ class Curves:
     """The evaluations of one algorithm (or variant) on one task, at the evaluations every seed has reached (the
     table's mean), and each seed's own (the CSV, the figure's continuation of seeds that went further)."""
 
-    seeds: list[int]
-    finished: list[bool]  # per seed: the run has ended (result.json); a running or cut-off run is partial
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (seeds, evaluations) success rates
     metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (seeds, evaluations), NaN where not logged
     per_seed: list[SeedCurve]
 
+    @property
+    def seeds(self) -> list[int]:
+        return [seed_curve.seed for seed_curve in self.per_seed]
 
-def load_curves(out: Path, name: str, env_id: str, seeds: list[int]) -> Curves | None:
-    """The runs of ``name`` (``<algo>[-<variant>]``) on ``env_id`` that have evaluations, read with plot.py's loaders.
+    @property
+    def finished(self) -> list[bool]:
+        return [seed_curve.finished for seed_curve in self.per_seed]
 
-    A seed counts with its last run folder; the option metrics at an evaluation are the last values ``progress.csv``
-    logged at or before its step.
+
+def run_seed_curve(run: Path, seed: int) -> SeedCurve | None:
+    """The evaluations of one zoo run folder, read with plot.py's loaders, or None before its first evaluation.
+
+    The option metrics at an evaluation are the last values ``progress.csv`` logged at or before its step.
     """
+    curve = plot.evaluation_curve(run)
+    if curve is None:
+        return None
+    log = plot.load_progress(run)
+    logged: dict[str, plot.Curve | None] = {
+        key: plot.metric_curve(log, f"rollout/{key}") if log is not None else None for key in OPTION_METRICS
+    }
+    logged[TRAINING_SUCCESS] = plot.training_success_curve(run)
+    logged[PREFERENCE_PAIRS] = plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None
+    steps, success = curve
+    metrics = {key: np.array([plot.value_at(logged[key], step) for step in steps]) for key in CSV_METRICS}
+    return SeedCurve(seed=seed, finished=finished(run), steps=steps, success=success, metrics=metrics)
+
+
+def read_report_csv(path: Path) -> dict[tuple[str, str, int], SeedCurve]:
+    """The runs of a CSV that :func:`report` wrote, by ``(env, name, seed)``: runs whose folders are gone (a past
+    session's machine, another machine) still count in a later report (``--previous-csv``).
+
+    :raises ValueError: the file lacks a column :func:`report` writes (names the file and the columns)
+    """
+    with open(path, newline="") as file:
+        reader = csv.DictReader(file)
+        missing = [column for column in CSV_COLUMNS if column not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(
+                f"{path} lacks the columns {missing} of a report CSV ({','.join(CSV_COLUMNS)}): pass a CSV that "
+                "benchmark.py learning wrote"
+            )
+        rows: dict[tuple[str, str, int], list[dict[str, str]]] = {}
+        for row in reader:
+            rows.setdefault((row["env"], row["algo"], int(row["seed"])), []).append(row)
+    return {
+        (env_id, name, seed): SeedCurve(
+            seed=seed,
+            finished=all(row["finished"] == "1" for row in seed_rows),
+            steps=np.array([float(row["timesteps"]) for row in seed_rows]),
+            success=np.array([float(row["success"]) for row in seed_rows]),
+            metrics={key: np.array([float(row[key] or "nan") for row in seed_rows]) for key in CSV_METRICS},
+        )
+        for (env_id, name, seed), seed_rows in rows.items()
+    }
+
+
+def load_curves(
+    out: Path, name: str, env_id: str, seeds: list[int], previous: Mapping[tuple[str, str, int], SeedCurve]
+) -> Curves | None:
+    """The runs of ``name`` (``<algo>[-<variant>]``) on ``env_id`` that have evaluations: a seed with a run folder in
+    ``out`` is read from its last one, any other from ``previous`` (:func:`read_report_csv`)."""
     algo, _, variant = name.partition("-")
-    found, done, curves, logs, last_runs = [], [], [], [], []
+    per_seed = []
     for seed in seeds:
         runs = plot.zoo_runs(seed_folder(out, variant or None, seed), algo, env_id)
-        curve = plot.evaluation_curve(runs[-1]) if runs else None
-        if curve is not None:
-            found.append(seed)
-            done.append(finished(runs[-1]))
-            curves.append(curve)
-            logs.append(plot.load_progress(runs[-1]))
-            last_runs.append(runs[-1])
-    if not curves:
+        seed_curve = run_seed_curve(runs[-1], seed) if runs else previous.get((env_id, name, seed))
+        if seed_curve is not None:
+            per_seed.append(seed_curve)
+    if not per_seed:
         return None
-    logged: dict[str, list[plot.Curve | None]] = {
-        key: [plot.metric_curve(log, f"rollout/{key}") if log is not None else None for log in logs] for key in OPTION_METRICS
+    steps, success = plot.align([(seed_curve.steps, seed_curve.success) for seed_curve in per_seed])
+    metrics = {
+        key: np.array([[plot.value_at((seed.steps, seed.metrics[key]), step) for step in steps] for seed in per_seed])
+        for key in CSV_METRICS
     }
-    logged[TRAINING_SUCCESS] = [plot.training_success_curve(run) for run in last_runs]
-    logged[PREFERENCE_PAIRS] = [plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None for log in logs]
-
-    def at(seed: int, steps: np.ndarray) -> dict[str, np.ndarray]:
-        """Each metric of the ``seed``-th run: its last logged value at or before each of ``steps``."""
-        return {key: np.array([plot.value_at(logged[key][seed], step) for step in steps]) for key in CSV_METRICS}
-
-    steps, success = plot.align(curves)
-    common = [at(seed, steps) for seed in range(len(curves))]
-    metrics = {key: np.array([seed[key] for seed in common]) for key in CSV_METRICS}
-    per_seed = [
-        SeedCurve(seed_steps, seed_success, at(seed, seed_steps)) for seed, (seed_steps, seed_success) in enumerate(curves)
-    ]
-    return Curves(seeds=found, finished=done, steps=steps, success=success, metrics=metrics, per_seed=per_seed)
+    return Curves(steps=steps, success=success, metrics=metrics, per_seed=per_seed)
 
 
 def final_mean(curves: Curves, key: str, number_format: str = ".2f") -> str:
@@ -538,21 +584,26 @@ def final_mean(curves: Curves, key: str, number_format: str = ".2f") -> str:
     return mean + (f" ({measured} of {len(final)} seeds)" if measured < len(final) else "")
 
 
-def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tuple[str, dict[str, Curves], list[str]]:
+def task_table(
+    out: Path, names: list[str], env_id: str, seeds: list[int], previous: Mapping[tuple[str, str, int], SeedCurve]
+) -> tuple[str, dict[str, Curves], list[str]]:
     """Markdown table of one task (success at the last common evaluation, steps to 50 %, option metrics), its curves
     and its CSV rows."""
     curves: dict[str, Curves] = {}
     rows, csv_rows = [], []
     for name in names:
-        run_curves = load_curves(out, name, env_id, seeds)
+        run_curves = load_curves(out, name, env_id, seeds, previous)
         if run_curves is None:
             continue
         curves[name] = run_curves
-        for seed, seed_curve in zip(run_curves.seeds, run_curves.per_seed, strict=True):
+        for seed_curve in run_curves.per_seed:
             for step_index, step in enumerate(seed_curve.steps):
                 metrics = [seed_curve.metrics[key][step_index] for key in CSV_METRICS]
                 values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
-                csv_rows.append(f"{env_id},{name},{seed},{int(step)},{seed_curve.success[step_index]:.4f},{values}")
+                success = seed_curve.success[step_index]
+                csv_rows.append(
+                    f"{env_id},{name},{seed_curve.seed},{int(step)},{success:.4f},{values},{int(seed_curve.finished)}"
+                )
         final = run_curves.success[:, -1]
         reached = np.flatnonzero(run_curves.success.mean(axis=0) >= 0.5)
         to_half = f"{int(run_curves.steps[reached[0]]):,}" if reached.size else "not reached"
@@ -572,15 +623,22 @@ def task_table(out: Path, names: list[str], env_id: str, seeds: list[int]) -> tu
 
 
 def report(
-    out: Path, names: list[str], envs: list[str], seeds: list[int], name: str, figures_dir: Path
+    out: Path,
+    names: list[str],
+    envs: list[str],
+    seeds: list[int],
+    name: str,
+    figures_dir: Path,
+    previous: Mapping[tuple[str, str, int], SeedCurve] | None = None,
 ) -> tuple[dict[str, str], dict[str, dict[str, Curves]], Path]:
     """Tables and curves per task, the CSV ``<out>/<name>.csv`` and the figure ``<figures_dir>/<name>.png``.
 
     :param names: the runs to report, ``<algo>`` or ``<algo>-<variant>``
+    :param previous: runs without a folder in ``out``, from an earlier report's CSV (:func:`read_report_csv`)
     """
-    tables, curves, csv_rows = {}, {}, ["env,algo,seed,timesteps,success," + ",".join(CSV_METRICS)]
+    tables, curves, csv_rows = {}, {}, [",".join(CSV_COLUMNS)]
     for env_id in envs:
-        tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds)
+        tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds, previous or {})
         csv_rows += rows
     write_bytes_atomically(out / f"{name}.csv", ("\n".join(csv_rows) + "\n").encode())
     panels = {
@@ -649,7 +707,8 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
         for result in results:
             print(result, flush=True)
     figures_dir = Path(args.figures_dir or RESULTS_DIR) if args.write else out
-    tables, curves, figure = report(out, args.report or names, args.envs, args.seeds, args.name, figures_dir)
+    previous = read_report_csv(Path(args.previous_csv)) if args.previous_csv else None
+    tables, curves, figure = report(out, args.report or names, args.envs, args.seeds, args.name, figures_dir, previous)
     budget = f"{args.n_timesteps:,} primitive steps per run" if args.n_timesteps else "the YAML budgets"
     overrides = " ".join(flags[flags.index("-params") + 1 :]) if args.set else ""
     description = (
@@ -726,6 +785,10 @@ def main() -> None:
         "--report-only", action="store_true", help="run nothing: tables and figure from the runs on disk, partial ones too"
     )
     learning.add_argument("--report", nargs="*", default=None, help="runs to put in the table (default: this command's)")
+    learning.add_argument(
+        "--previous-csv",
+        help="an earlier report's CSV (e.g. docs/benchmarks/<name>.csv): its runs count where --out has no run folder",
+    )
     learning.add_argument("--write", action="store_true", help="write the section of BENCHMARKS.md and its figure")
     learning.add_argument("--benchmarks-md", help="with --write: the markdown file of the section (default: BENCHMARKS.md)")
     learning.add_argument("--figures-dir", help="with --write: the directory of the figure (default: docs/benchmarks)")
@@ -733,6 +796,8 @@ def main() -> None:
     if args.command == "learning":
         if not args.write and (args.benchmarks_md or args.figures_dir):
             learning.error("--benchmarks-md and --figures-dir say where --write writes: add --write, or leave them out")
+        if args.previous_csv and not Path(args.previous_csv).is_file():
+            learning.error(f"--previous-csv {args.previous_csv}: no such file (a CSV an earlier report wrote)")
         if args.variant == DEFAULT_VARIANT:
             learning.error(f"--variant {DEFAULT_VARIANT} names the folder of the runs without a variant: choose another")
     commands_run = {"throughput": run_throughput, "profiles": run_profiles, "updates": run_updates, "learning": run_learning}
