@@ -1,15 +1,17 @@
 """Demonstrations (npz round trip, malformed files) and the lower level's Q-filtered behaviour cloning."""
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 
 from sb3_dipper import DIPPER, HIER
-from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.demonstrations import demonstrations_for, load_demonstrations
 from sb3_dipper.common import imitation
 from sb3_dipper.common.imitation import DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
 from sb3_dipper.common.low_level import clipped_soft_target
 from sb3_dipper.common.subgoals import SubgoalSpace
+from stable_baselines3.common.vec_env import DummyVecEnv
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import short_maze, tiny_model
 
@@ -148,6 +150,16 @@ def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypa
     assert default_demonstration_path("PointMazeFourRooms-v0").exists() and first.n_episodes == 1
     fresh = expert_demonstrations("PointMazeFourRooms-v0", n_episodes=1, seed=0)
     np.testing.assert_array_equal(first.actions, fresh.actions)
+
+
+def test_auto_demonstrations_name_the_tasks_that_have_one():
+    """demo_path="auto" loads what the task registered (sb3_dipper.envs, one per scripted expert); elsewhere it says
+    which tasks have one and what to pass instead."""
+    env = DummyVecEnv([lambda: gym.make("FetchReach-v4")])
+    with pytest.raises(
+        ValueError, match=r"no default demonstration for 'FetchReach-v4' \(tasks with one: .*PointMazeFourRooms-v0"
+    ):
+        demonstrations_for("auto", env)
 
 
 @pytest.mark.parametrize("with_demos", [True, False])

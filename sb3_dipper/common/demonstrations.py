@@ -27,6 +27,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from stable_baselines3.common.vec_env import VecEnv
+
 from sb3_dipper.common.files import read_npz, save_npz
 
 OBSERVATION_KEYS = ("observation", "achieved_goal", "desired_goal")
@@ -183,6 +185,32 @@ def _run_episode(env: gym.Env, expert: ScriptedExpert, seed: int) -> dict[str, A
     for name in ("observations", "next_observations"):
         steps[name] = {key: np.stack([step[key] for step in steps[name]]) for key in OBSERVATION_KEYS}  # type: ignore[assignment]
     return steps
+
+
+# demo_path="auto": each task's single default demonstration, registered by the module that defines the task
+# (sb3_dipper.envs registers one per scripted expert), so this floor names no task.
+_DEFAULT_DEMONSTRATIONS: dict[str, Callable[[], Demonstrations]] = {}
+
+
+def register_default_demonstrations(env_id: str, make: Callable[[], Demonstrations]) -> None:
+    """Declare what ``demo_path="auto"`` loads for ``env_id``: ``make()`` returns its demonstrations."""
+    _DEFAULT_DEMONSTRATIONS[env_id] = make
+
+
+def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
+    """The demonstrations ``demo_path`` names for ``env``: an npz file or a Minari dataset directory
+    (:func:`load_demonstrations`), or ``"auto"``, the default demonstration registered for the env's id."""
+    if demo_path != "auto":
+        return load_demonstrations(demo_path)
+    spec = env.get_attr("spec", indices=[0])[0]
+    if spec is None:
+        raise ValueError('demo_path="auto" needs an env made from a registered id; pass a demonstration file instead')
+    if spec.id not in _DEFAULT_DEMONSTRATIONS:
+        raise ValueError(
+            f'demo_path="auto": no default demonstration for {spec.id!r} (tasks with one: '
+            f"{sorted(_DEFAULT_DEMONSTRATIONS)}); pass a demonstration file (sb3-dipper-demos) instead"
+        )
+    return _DEFAULT_DEMONSTRATIONS[spec.id]()
 
 
 def load_demonstrations(path: str | Path, n_episodes: int | None = None) -> Demonstrations:

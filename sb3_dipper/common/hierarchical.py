@@ -34,7 +34,7 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
-from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.demonstrations import demonstrations_for
 from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical_policy import (
     ActingLowLevel,
@@ -57,7 +57,6 @@ from sb3_dipper.common.low_level import (
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.common.validation import as_float, as_int, as_optional_int, check_goal_observation_space
-from sb3_dipper.envs.demos import default_demonstrations
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
 
@@ -297,13 +296,7 @@ class HierarchicalAlgorithm(CheckedLoading):
 
     def _load_demonstrations(self) -> DemonstrationBuffer:
         assert self.env is not None and self.subgoal_space is not None and self.demo_path is not None
-        if self.demo_path == "auto":
-            spec = self.env.get_attr("spec", indices=[0])[0]
-            if spec is None:
-                raise ValueError('demo_path="auto" needs an env made from a registered id; pass a demonstration file instead')
-            demonstrations = default_demonstrations(spec.id)
-        else:
-            demonstrations = load_demonstrations(self.demo_path)
+        demonstrations = demonstrations_for(self.demo_path, self.env)
         # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
         demonstrations = demonstrations.first_episodes(self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)

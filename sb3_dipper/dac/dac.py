@@ -67,7 +67,7 @@ from stable_baselines3.common.type_aliases import DictReplayBufferSamples, GymEn
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from torch import nn
 
-from sb3_dipper.common.demonstrations import Demonstrations, load_demonstrations
+from sb3_dipper.common.demonstrations import Demonstrations, demonstrations_for
 from sb3_dipper.common.files import (
     read_npz,
     read_replay_buffer,
@@ -79,7 +79,6 @@ from sb3_dipper.common.hierarchical import has_finished_episode, sibling_path
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.validation import as_float, as_int, as_train_freq, check_goal_observation_space
 from sb3_dipper.dac.policies import Discriminator, MlpPolicy, MultiInputPolicy
-from sb3_dipper.envs.demos import default_demonstrations
 
 SelfDAC = TypeVar("SelfDAC", bound="DAC")
 
@@ -511,13 +510,7 @@ class DAC(CheckedLoading, SAC):
 
     def _load_expert(self) -> ExpertTransitions:
         assert self.env is not None and isinstance(self.action_space, spaces.Box) and self.demo_path is not None
-        if self.demo_path == "auto":
-            spec = self.env.get_attr("spec", indices=[0])[0]
-            if spec is None:
-                raise ValueError('demo_path="auto" needs an env made from a registered id; pass a demonstration file instead')
-            demonstrations = default_demonstrations(spec.id)
-        else:
-            demonstrations = load_demonstrations(self.demo_path)
+        demonstrations = demonstrations_for(self.demo_path, self.env)
         demonstrations = demonstrations.first_episodes(self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)

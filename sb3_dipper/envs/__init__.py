@@ -1,11 +1,14 @@
 """Environments of this package, registered with gymnasium on ``import sb3_dipper``, and their scripted experts."""
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import gymnasium as gym
 
+from sb3_dipper.common.demonstrations import register_default_demonstrations
 from sb3_dipper.envs import fetch, kitchen, robotics
+from sb3_dipper.envs.demos import default_demonstrations
 from sb3_dipper.envs.point_maze import PointMazeExpert, PointMazeFourRoomsEnv, PointMazeReachController
 
 # env id -> factory(env) of a scripted expert with reset() and act(observation) (see sb3_dipper.common.demonstrations)
@@ -17,7 +20,9 @@ EXPERTS: dict[str, Callable[[gym.Env], Any]] = {
 
 
 def register_envs() -> None:
-    """Register our env ids (idempotent)."""
+    """Register our env ids and, for ``demo_path="auto"``, each expert's default demonstration (idempotent)."""
+    for env_id in EXPERTS:
+        register_default_demonstrations(env_id, partial(default_demonstrations, env_id))
     if "PointMazeFourRooms-v0" not in gym.registry:
         gym.register(
             id="PointMazeFourRooms-v0",
