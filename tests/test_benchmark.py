@@ -220,6 +220,14 @@ def test_report_per_task(tmp_path, monkeypatch):
     np.testing.assert_allclose(continued.get_ydata(), [0.0, 0.25])
 
 
+def test_a_task_without_runs_says_so_instead_of_an_empty_table(tmp_path):
+    write_run(tmp_path, "dipper", ENV_ID, 0, [0.0, 0.5], hierarchical=True)
+
+    table, curves, csv_rows = benchmark.task_table(tmp_path, ["dipper", "sac"], "FetchPush-v4", [0], {})
+
+    assert (table, curves, csv_rows) == ("No runs yet.", {}, [])
+
+
 def test_a_later_report_takes_the_runs_whose_folders_are_gone_from_the_earlier_csv(tmp_path):
     """Run folders do not outlive their machine; the CSV does. A report from the CSV alone is the report from the
     folders (tables, partial runs, CSV); a seed with a folder on disk is read from the folder, the others from the CSV."""

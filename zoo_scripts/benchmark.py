@@ -614,6 +614,8 @@ def task_table(
             f"{final_mean(run_curves, TRAINING_SUCCESS)} | {to_half} | {final_mean(run_curves, 'subgoal_distance')} | "
             f"{final_mean(run_curves, 'low_value')} | {final_mean(run_curves, PREFERENCE_PAIRS, ',.0f')} |"
         )
+    if not rows:
+        return "No runs yet.", curves, csv_rows
     table = (
         "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | training success there (last 100 "
         "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there | labelled pairs there |\n"
