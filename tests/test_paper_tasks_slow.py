@@ -10,17 +10,17 @@ episodes of every run were at 0.00-0.02. So this checks that learning happens (t
 the lower level learns the push), not the paper's final success rate. The tests' own runs (seed 0, on a shared core)
 ended at 0.10 from 0.00 at 10k on both tasks (pick-and-place 20 minutes, push 21).
 
-On the Fetch mazes and the kitchen the CPU profiles normalise observations because, unnormalised, the lower actor's
-ReLU units died (BENCHMARKS.md section 13). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the
-demonstration shows: driven by the demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and
-1 (none untrained; none at any point to 20k on seeds 1 and 2 unnormalised); the test's own run reached all 15 in 4
-minutes, and still passes at the authors' update rate (0.044 per step, the profile since section 15: both maze checks
-in 5 minutes on a shared core). On the random maze no learning signal has been measured at a CPU budget yet; what is checked there is the
-fix itself: the lower actor keeps its units alive (unnormalised, 97 % of one layer was dead at 5k and 10k; the test's
-own run, normalised, 54 % at 10k). The kitchen has no check: nothing was learnt there, and its units die
-over hundreds of thousands of steps, too slowly for a short run to tell normalised from raw inputs (at 30k both had
-about 40 % dead). The random pick-and-place and push have no check either: nothing was learnt there (BENCHMARKS.md,
-sections 8 and 11) and their networks stay alive without normalisation.
+On the Fetch mazes and the kitchen the CPU profiles normalise observations because, unnormalised, the lower actor's ReLU
+units died (BENCHMARKS.md section 13). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the demonstration
+shows: driven by the demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and 1 (none
+untrained; none at any point to 20k on seeds 1 and 2 unnormalised); the test's own run reached all 15 in 4 minutes, and
+still passes at the authors' update rate (0.044 per step, the profile since section 15: both maze checks in 5 minutes on
+a shared core). On the random maze no learning signal has been measured at a CPU budget yet; what is checked there is
+the fix itself: the lower actor keeps its units alive (unnormalised, 97 % of one layer was dead at 5k and 10k; the
+test's own run, normalised, 54 % at 10k). The kitchen has no check: nothing was learnt there, and its units die over
+hundreds of thousands of steps, too slowly for a short run to tell normalised from raw inputs (at 30k both had about 40
+% dead). The random pick-and-place and push have no check either: nothing was learnt there (BENCHMARKS.md, sections 8
+and 11) and their networks stay alive without normalisation.
 """
 
 import sys
