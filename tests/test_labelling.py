@@ -1,5 +1,6 @@
 """Preferences from people: the label queue, the asynchronous source, NoisyLabeler, the page, and training on late labels."""
 
+import csv
 import json
 import os
 import shutil
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.logger import configure
 
 from sb3_dipper import DIPPER, PIPER, DPOFlat
 from sb3_dipper.common.preferences import (
@@ -305,6 +307,32 @@ def test_noise_is_chosen_from_the_constructor(maze_env):
     model = any_tiny_model(DIPPER, maze_env, preference_source="noisy:0.25")
     assert isinstance(model._labeler, NoisyLabeler) and model._labeler.noise == 0.25
     assert isinstance(model._labeler.script, PrimitiveInTheLoopLabeler)
+
+
+class ConstantLabeler(PrimitiveInTheLoopLabeler):
+    """Every pair gets the same label."""
+
+    def __init__(self, label: float):
+        self.constant = label
+
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        return np.full(pairs.labels.shape, self.constant, dtype=np.float32)
+
+
+TIE_SHARE_KEY = {DIPPER: "train/high_tie_share", PIPER: "train/high_tie_share", DPOFlat: "train/tie_share"}
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
+@pytest.mark.parametrize(("label", "tie_share"), [(0.5, 1.0), (1.0, 0.0)])
+def test_the_share_of_ties_the_preference_learner_trains_on_is_logged(model_class, label, tie_share, tmp_path):
+    """A tie carries no preference, so a share near 1 says the labels leave nothing to learn (the kitchen's case)."""
+    model = any_tiny_model(model_class, short_maze(), preference_source=ConstantLabeler(label))
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(200, log_interval=1)
+    with open(tmp_path / "progress.csv") as log:
+        logged = [row[TIE_SHARE_KEY[model_class]] for row in csv.DictReader(log)]
+    shares = [float(value) for value in logged if value != ""]
+    assert shares and all(share == tie_share for share in shares)
 
 
 # ---------------------------------------------------------------------------------------------------- the page

@@ -10,9 +10,11 @@ from sb3_dipper.common.losses import (
     at_real_steps,
     dipper_logits,
     dipper_loss,
+    preference_accuracy,
     preference_loss,
     preferred_nll,
     squashed_gaussian_log_prob,
+    tie_share,
     uniform_log_prob,
 )
 
@@ -111,6 +113,22 @@ def test_preference_loss_is_binary_cross_entropy_with_soft_labels():
     logits, labels = th.tensor([2.0, -1.0]), th.tensor([1.0, 0.5])
     expected = (-log_sigmoid(2.0) + (-0.5 * log_sigmoid(-1.0) - 0.5 * log_sigmoid(1.0))) / 2
     assert preference_loss(logits, labels).item() == pytest.approx(expected)
+
+
+def test_preference_accuracy_counts_strict_pairs_only():
+    logits, labels = th.tensor([1.0, -2.0, 3.0, 0.5]), th.tensor([1.0, 1.0, 0.5, 0.0])
+    # Strict pairs 0, 1, 3: logit 1 prefers tau^1 (right), -2 prefers tau^2 (wrong), 0.5 prefers tau^1 (wrong).
+    assert preference_accuracy(logits, labels) == pytest.approx(1 / 3)
+    assert preference_accuracy(logits, th.full((4,), 0.5)) is None
+
+
+def test_tie_share_and_the_least_loss_of_a_tie():
+    assert tie_share(th.tensor([1.0, 0.5, 0.0, 0.5])) == 0.5
+    assert tie_share(th.tensor([1.0, 0.0])) == 0.0
+    # A tie's loss -[log sigma(z) + log sigma(-z)] / 2 is smallest at z = 0, where it is ln 2: no margin to learn.
+    ties = th.full((3,), 0.5)
+    assert preference_loss(th.zeros(3), ties).item() == pytest.approx(math.log(2.0))
+    assert preference_loss(th.tensor([-1.0, 0.3, 2.0]), ties).item() > math.log(2.0)
 
 
 def test_preferred_nll_uses_the_preferred_side_and_skips_ties():

@@ -11,7 +11,8 @@ from stable_baselines3.common.logger import configure
 
 from sb3_dipper.common.preferences import sample_trajectory_pairs
 from sb3_dipper.piper import PIPER, LearnedRewardReplayBuffer
-from sb3_dipper.piper.piper import bradley_terry_loss, preference_accuracy, reward_model_logits
+from sb3_dipper.common.losses import preference_accuracy
+from sb3_dipper.piper.piper import bradley_terry_loss, reward_model_logits
 from tests.conftest import short_maze
 from tests.test_save_load import rollout_actions
 
@@ -70,12 +71,6 @@ def test_logits_of_pairs_of_unequal_lengths():
     step_rewards = th.tensor([[[1.0, 1.0], [0.5, -1.0]], [[0.25, 9.0], [0.5, 0.5]]])
     mask = th.tensor([[[True, True], [True, True]], [[True, False], [True, True]]])
     assert reward_model_logits(step_rewards, mask).tolist() == pytest.approx([2.0 - 0.25, -0.5 - 1.0])
-
-
-def test_preference_accuracy_counts_strict_pairs_only():
-    logits, labels = th.tensor([1.0, -2.0, 3.0, 0.5]), th.tensor([1.0, 1.0, 0.5, 0.0])
-    assert preference_accuracy(logits, labels) == pytest.approx(1 / 3)
-    assert preference_accuracy(logits, th.full((4,), 0.5)) is None
 
 
 # ---------------------------------------------------------------------------------------------------- the mechanism

@@ -84,6 +84,20 @@ def preference_loss(logits: th.Tensor, labels: th.Tensor) -> th.Tensor:
     return F.binary_cross_entropy_with_logits(logits, labels.to(logits.dtype))
 
 
+def preference_accuracy(logits: th.Tensor, labels: th.Tensor) -> float | None:
+    """Share of strict pairs (ties left out) whose logit prefers the labelled trajectory; ``None`` without strict pairs."""
+    strict = labels != 0.5
+    if not bool(strict.any()):
+        return None
+    return ((logits[strict] > 0) == (labels[strict] > 0.5)).float().mean().item()
+
+
+def tie_share(labels: th.Tensor) -> float:
+    """Share of ties (label 0.5) among the pairs. A tie carries no preference and its loss is at least ln 2, so a
+    share near 1 leaves a preference learner nothing to learn."""
+    return (labels == 0.5).float().mean().item()
+
+
 def dipper_loss(
     log_probs: th.Tensor,
     mask: th.Tensor,

@@ -18,7 +18,14 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
-from sb3_dipper.common.losses import at_real_steps, dipper_loss, preferred_nll, uniform_log_prob
+from sb3_dipper.common.losses import (
+    at_real_steps,
+    dipper_loss,
+    preference_accuracy,
+    preferred_nll,
+    tie_share,
+    uniform_log_prob,
+)
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
 from sb3_dipper.common.planning import SubgoalGraph
@@ -414,7 +421,7 @@ class DIPPER(HierarchicalAlgorithm):
         """``high_gradient_steps`` DIPPER updates of the higher policy on sampled labelled pairs."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.actor.optimizer)
-        dpo_losses, nll_losses, accuracies, value_gaps = [], [], [], []
+        dpo_losses, nll_losses, accuracies, value_gaps, tie_shares = [], [], [], [], []
         for _ in range(self.high_gradient_steps):
             pairs = self.preferences.sample(self.pairs_per_batch, self._rng)
             observations, actions, mask, labels = self._pair_tensors(pairs)
@@ -442,9 +449,10 @@ class DIPPER(HierarchicalAlgorithm):
             self.policy.update_averaged_actor()
 
             dpo_losses.append(dpo.item())
-            strict = labels != 0.5
-            if bool(strict.any()):
-                accuracies.append(((logits[strict] > 0) == (labels[strict] > 0.5)).float().mean().item())
+            tie_shares.append(tie_share(labels))
+            accuracy = preference_accuracy(logits.detach(), labels)
+            if accuracy is not None:
+                accuracies.append(accuracy)
             if gaps is not None:
                 value_gaps.append((gaps * mask).sum().item() / max(mask.sum().item(), 1.0))
         self._refresh_value_snapshot()
@@ -452,6 +460,7 @@ class DIPPER(HierarchicalAlgorithm):
         self.logger.record("train/high_n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/high_dpo_loss", float(np.mean(dpo_losses)))
         self.logger.record("train/high_preference_pairs", len(self.preferences))
+        self.logger.record("train/high_tie_share", float(np.mean(tie_shares)))
         if nll_losses:
             self.logger.record("train/high_nll", float(np.mean(nll_losses)))
         if accuracies:

@@ -39,7 +39,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_dipper.common.files import replay_buffer_path
 from sb3_dipper.common.hierarchical import sibling_path
 from sb3_dipper.common.loading import CheckedLoading
-from sb3_dipper.common.losses import dipper_loss, preferred_nll, uniform_log_prob
+from sb3_dipper.common.losses import dipper_loss, preference_accuracy, preferred_nll, tie_share, uniform_log_prob
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
     PreferenceSource,
@@ -385,9 +385,10 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
             self.policy.update_averaged_actor()
 
             logs["dpo_loss"].append(dpo.item())
-            strict = labels != 0.5
-            if bool(strict.any()):
-                logs["pref_accuracy"].append(((logits[strict] > 0) == (labels[strict] > 0.5)).float().mean().item())
+            logs["tie_share"].append(tie_share(labels))
+            accuracy = preference_accuracy(logits.detach(), labels)
+            if accuracy is not None:
+                logs["pref_accuracy"].append(accuracy)
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/preference_pairs", len(self.preferences))

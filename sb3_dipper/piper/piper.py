@@ -44,7 +44,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.hierarchical import sibling_path
-from sb3_dipper.common.losses import preference_loss
+from sb3_dipper.common.losses import preference_accuracy, preference_loss, tie_share
 from sb3_dipper.common.low_level import sac_state_value
 from sb3_dipper.common.option_env import DictObs, low_level_observation
 from sb3_dipper.common.preferences import (
@@ -88,14 +88,6 @@ def bradley_terry_loss(step_rewards: th.Tensor, mask: th.Tensor, labels: th.Tens
     """
     logits = reward_model_logits(step_rewards, mask)
     return preference_loss(logits, labels), logits
-
-
-def preference_accuracy(logits: th.Tensor, labels: th.Tensor) -> float | None:
-    """Share of strict pairs (ties left out) whose logit prefers the labelled trajectory; ``None`` without strict pairs."""
-    strict = labels != 0.5
-    if not bool(strict.any()):
-        return None
-    return ((logits[strict] > 0) == (labels[strict] > 0.5)).float().mean().item()
 
 
 class LearnedRewardReplayBuffer(HerReplayBuffer):
@@ -421,7 +413,7 @@ class PIPER(HIER):
     def _train_reward_model(self) -> None:
         """Fit ``r_phi`` to the labelled pairs by the Bradley-Terry loss over the trajectories' summed rewards."""
         self.reward_model.set_training_mode(True)
-        losses, accuracies = [], []
+        losses, accuracies, tie_shares = [], [], []
         for _ in range(self.reward_gradient_steps):
             pairs = self.preferences.sample(self.reward_batch_size, self._rng)
             observations = self._pair_observations(pairs)
@@ -436,12 +428,14 @@ class PIPER(HIER):
             self.reward_model.optimizer.step()
 
             losses.append(loss.item())
+            tie_shares.append(tie_share(labels))
             accuracy = preference_accuracy(logits.detach(), labels)
             if accuracy is not None:
                 accuracies.append(accuracy)
         self.reward_model.set_training_mode(False)
         self.logger.record("train/high_reward_model_loss", float(np.mean(losses)))
         self.logger.record("train/high_preference_pairs", len(self.preferences))
+        self.logger.record("train/high_tie_share", float(np.mean(tie_shares)))
         if accuracies:
             self.logger.record("train/high_reward_model_accuracy", float(np.mean(accuracies)))
 
