@@ -21,6 +21,7 @@ from stable_baselines3.common.logger import configure
 from sb3_dipper import DIPPER, PIPER, DPOFlat
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
+    PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
     add_new_labels,
@@ -309,7 +310,7 @@ def test_noise_is_chosen_from_the_constructor(maze_env):
     assert isinstance(model._labeler.script, PrimitiveInTheLoopLabeler)
 
 
-class ConstantLabeler(PrimitiveInTheLoopLabeler):
+class ConstantLabeler(PreferenceSource):
     """Every pair gets the same label."""
 
     def __init__(self, label: float):
