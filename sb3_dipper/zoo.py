@@ -232,6 +232,14 @@ COMMANDS = {
     "plot_from_file": "plot from a post-processed results file (rl-zoo3's plot_from_file)",
     "all_plots": "plot evaluation results of several runs (rl-zoo3's all_plots)",
 }
+# The rl-zoo3 module whose function of the command's name runs it (rl_zoo3.cli's table; record_video is a script).
+COMMAND_MODULES = {
+    "train": "rl_zoo3.train",
+    "enjoy": "rl_zoo3.enjoy",
+    "plot_train": "rl_zoo3.plots.plot_train",
+    "plot_from_file": "rl_zoo3.plots.plot_from_file",
+    "all_plots": "rl_zoo3.plots.all_plots",
+}
 
 
 def command_parser() -> argparse.ArgumentParser:
@@ -632,10 +640,10 @@ def main() -> None:
         sys.argv = [program, *argv]
         runpy.run_module("rl_zoo3.record_video", run_name="__main__")
         return
-    from rl_zoo3.cli import main as zoo_main
-
-    sys.argv = [program, command, *argv]
-    zoo_main()
+    # Each command's own rl-zoo3 module, the way rl_zoo3.cli dispatches, without importing the others: the plotting
+    # modules (seaborn) add seconds to the start of every `train` and `enjoy`.
+    sys.argv = [program, *argv]
+    getattr(importlib.import_module(COMMAND_MODULES[command]), command)()
 
 
 if __name__ == "__main__":
