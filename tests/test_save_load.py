@@ -44,7 +44,7 @@ def test_every_algorithm_saves_loads_without_env_and_predicts_the_same(model_cla
 
 # The hierarchical algorithms repeat their runs in the stronger test_same_seed_same_first_thousand_steps below (both
 # levels' weights and the collected observations, over a thousand steps).
-@pytest.mark.parametrize("model_class", [algorithm for algorithm in ALL_ALGORITHMS if algorithm not in HIERARCHICAL_ALGORITHMS])
+@pytest.mark.parametrize("model_class", [model for model in ALL_ALGORITHMS if model not in HIERARCHICAL_ALGORITHMS])
 def test_the_other_algorithms_repeat_their_runs_with_the_same_seed(model_class):
     def trained_parameters():
         model = any_tiny_model(model_class, short_maze(seed=3), seed=3)
