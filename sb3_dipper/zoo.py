@@ -223,22 +223,16 @@ def register(control: RunControl | None = None) -> None:
     _install_run_folder_claim(control)
 
 
-# The subcommands of `sb3-dipper-zoo`: rl-zoo3's CLI scripts plus its video recorder, which is a module of its own.
+# The subcommands of `sb3-dipper-zoo`: each one's rl-zoo3 module and its help line. A command runs the module's function
+# of the command's name, as rl_zoo3.cli does, except record_video, a module run as a script. Each command imports only
+# its own module: through rl_zoo3.cli the plotting modules (seaborn) would add seconds to every `train` and `enjoy`.
 COMMANDS = {
-    "train": "train an agent (rl-zoo3's train; --conf-file defaults to our hyperparams/<algo>.yml)",
-    "enjoy": "run a trained agent (rl-zoo3's enjoy)",
-    "record_video": "record a video of a trained agent (rl-zoo3's record_video)",
-    "plot_train": "plot training curves (rl-zoo3's plot_train)",
-    "plot_from_file": "plot from a post-processed results file (rl-zoo3's plot_from_file)",
-    "all_plots": "plot evaluation results of several runs (rl-zoo3's all_plots)",
-}
-# The rl-zoo3 module whose function of the command's name runs it (rl_zoo3.cli's table; record_video is a script).
-COMMAND_MODULES = {
-    "train": "rl_zoo3.train",
-    "enjoy": "rl_zoo3.enjoy",
-    "plot_train": "rl_zoo3.plots.plot_train",
-    "plot_from_file": "rl_zoo3.plots.plot_from_file",
-    "all_plots": "rl_zoo3.plots.all_plots",
+    "train": ("rl_zoo3.train", "train an agent (rl-zoo3's train; --conf-file defaults to our hyperparams/<algo>.yml)"),
+    "enjoy": ("rl_zoo3.enjoy", "run a trained agent (rl-zoo3's enjoy)"),
+    "record_video": ("rl_zoo3.record_video", "record a video of a trained agent (rl-zoo3's record_video)"),
+    "plot_train": ("rl_zoo3.plots.plot_train", "plot training curves (rl-zoo3's plot_train)"),
+    "plot_from_file": ("rl_zoo3.plots.plot_from_file", "plot from a post-processed results file (rl-zoo3's plot_from_file)"),
+    "all_plots": ("rl_zoo3.plots.all_plots", "plot evaluation results of several runs (rl-zoo3's all_plots)"),
 }
 
 
@@ -250,7 +244,7 @@ def command_parser() -> argparse.ArgumentParser:
         epilog="Run `sb3-dipper-zoo COMMAND --help` for the flags of a command (they are rl-zoo3's own).",
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for command, description in COMMANDS.items():
+    for command, (_, description) in COMMANDS.items():
         # Each command parses its own flags: here they only show in `COMMAND --help`, which the command prints.
         commands.add_parser(command, help=description, add_help=False)
     return parser
@@ -634,16 +628,12 @@ def main() -> None:
     register(control)
     argv = zoo_argv(command, argv)
     # rl-zoo3's parsers name the program after sys.argv[0]: their usage lines then read `sb3-dipper-zoo train ...`.
-    program = f"sb3-dipper-zoo {command}"
+    sys.argv = [f"sb3-dipper-zoo {command}", *argv]
+    module = COMMANDS[command][0]
     if command == "record_video":
-        # rl-zoo3's video recorder is a module of its own, not a subcommand of its CLI.
-        sys.argv = [program, *argv]
-        runpy.run_module("rl_zoo3.record_video", run_name="__main__")
-        return
-    # Each command's own rl-zoo3 module, the way rl_zoo3.cli dispatches, without importing the others: the plotting
-    # modules (seaborn) add seconds to the start of every `train` and `enjoy`.
-    sys.argv = [program, *argv]
-    getattr(importlib.import_module(COMMAND_MODULES[command]), command)()
+        runpy.run_module(module, run_name="__main__")
+    else:
+        getattr(importlib.import_module(module), command)()
 
 
 if __name__ == "__main__":

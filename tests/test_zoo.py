@@ -37,9 +37,7 @@ PAPER_TASKS = [
 ]
 YAML_FILES = sorted(hyperparams_dir().glob("*.yml"))
 
-# Test-sized overrides per algorithm class, passed through rl-zoo3's own `-params` flag. dipper_paper and dipper_nov are
-# DIPPER with other hyperparameters: the YAML tests check their entries and tests/test_profiles.py builds them, so a
-# train-and-enjoy subprocess pair of their own (~30 s each) would only repeat DIPPER's.
+# Test-sized overrides per algorithm class, passed through rl-zoo3's own `-params` flag.
 TINY_HIERARCHICAL = [
     "n_envs:1",
     "option_steps:5",
@@ -49,6 +47,9 @@ TINY_HIERARCHICAL = [
     "low_policy_kwargs:dict(net_arch=[16])",
     "policy_kwargs:dict(net_arch=[16])",
 ]
+# dipper_paper and dipper_nov are DIPPER with other hyperparameters: the YAML tests check their entries and
+# tests/test_profiles.py builds them, so a train-and-enjoy subprocess pair of their own (~30 s each) would only repeat
+# DIPPER's.
 TINY_PARAMS = {
     "dipper": [*TINY_HIERARCHICAL, "n_preference_pairs:200", "pairs_per_batch:8", "trajectory_buffer_size:50"],
     "hier": [*TINY_HIERARCHICAL, "high_batch_size:16", "high_buffer_size:1000"],
