@@ -13,12 +13,13 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
-from sb3_dipper import DIPPER
+from sb3_dipper import DIPPER, HIER
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from tests.conftest import short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
+from zoo_scripts import planner_share
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -138,7 +139,7 @@ def test_plan_in_predict_false_needs_the_subgoal_planner(maze_env, planning):
         tiny_model(DIPPER, maze_env, planning=planning, plan_in_predict=False)
 
 
-def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways(tmp_path):
+def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_or_three_without_a_planner(tmp_path):
     run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
     maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
     model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
@@ -162,6 +163,19 @@ def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways(
     assert report["as_trained"]["planned_share"] > 0
     assert report["policy_alone"]["planned_share"] == report["lower_level_alone"]["planned_share"] == 0
 
-    tiny_model(DIPPER, maze_env).save(run / "PointMazeFourRooms-v0.zip")  # planning off: nothing to measure
-    refused = subprocess.run(command, capture_output=True, text=True, timeout=300)
-    assert refused.returncode != 0 and "not a DIPPER with planning='subgoal'" in refused.stderr
+    # Without the planner (the paper's DIPPER, DIPPER-No-V) the model as trained is its policy alone: three cases.
+    tiny_model(DIPPER, maze_env).save(run / "PointMazeFourRooms-v0.zip")
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads((run / "planner_share.json").read_text())
+    assert list(report) == ["as_trained", "untrained_policy", "lower_level_alone"]
+    assert all(case["planned_share"] == 0 for case in report.values())
+    assert pd.read_csv(tmp_path / "share.csv")["case"].tolist() == list(report)
+
+
+def test_planner_share_refuses_a_model_that_is_not_a_dipper(tmp_path):
+    run = tmp_path / "hier" / "PointMazeFourRooms-v0_1"
+    maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)
+    tiny_model(HIER, maze_env).save(run / "PointMazeFourRooms-v0.zip")
+    with pytest.raises(ValueError, match="is a HIER, not a DIPPER"):
+        planner_share.measure(run, "hier", "PointMazeFourRooms-v0", n_episodes=1)

@@ -1,8 +1,10 @@
-"""Who proposes the subgoals: the planner or the preference-trained policy? A trained DIPPER with planning, four ways.
+"""Who proposes the subgoals: the planner or the preference-trained policy? A trained DIPPER, four ways (three without
+a planner).
 
     python zoo_scripts/planner_share.py logs/dipper/PointMazeFourRooms-v0_1
     python zoo_scripts/planner_share.py runs/*/seed_*/dipper/PointMazeFourRooms-v0_1 --csv planner_share.csv
     python zoo_scripts/planner_share.py runs/p9/switches/seed_1/dipper/FetchPushFixed-v0_1 --checkpoints --csv curve.csv
+    python zoo_scripts/planner_share.py runs/p9/default/seed_0/dipper_nov/FetchPushFixed-v0_1 --algo dipper_nov --checkpoints
 
 With ``planning="subgoal"`` the planner over achieved states replaces the higher policy's proposal wherever its graph
 knows a path to the goal, so the success of the model as trained can be the planner's and the lower level's alone. The
@@ -14,6 +16,10 @@ planner made, and writes them as ``planner_share.json`` in the zoo run folder; w
 model and case. With ``--checkpoints`` it also measures every checkpoint the run kept (``rl_model_<steps>_steps.zip``,
 from ``benchmark.py learning --save-freq``), so the four cases can be followed over training; a run with
 ``VecNormalize`` is evaluated with its last statistics at every checkpoint.
+
+A DIPPER without the planner (``planning`` ``"off"`` or ``"waypoint"``: the paper's DIPPER, DIPPER-No-V) gets the three
+cases that do not need it: as trained (its policy alone), with the higher policy untrained and with the env's goal as
+every subgoal; whether its success is the preference-trained policy's or the lower level's alone.
 """
 
 from __future__ import annotations
@@ -35,6 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from configs import episode_successes, measure_runs, trained_run
 
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
+# Without the subgoal planner the model as trained is its policy alone.
+CASES_WITHOUT_PLANNER = ("as_trained", "untrained_policy", "lower_level_alone")
 
 
 def evaluate(model: DIPPER, env: VecEnv, n_episodes: int, goal_as_subgoal: bool = False) -> dict[str, float]:
@@ -73,13 +81,16 @@ def reset_higher_policy(model: DIPPER, seed: int) -> None:
 def measure(
     run: Path, algo: str, env_id: str, n_episodes: int, model_file: Path | None = None
 ) -> tuple[int, dict[str, dict[str, float]]]:
-    """Every case of :data:`CASES` on a fresh copy of the run's model (or of ``model_file``), and the primitive steps
-    that model had trained."""
+    """Every case of :data:`CASES` (of :data:`CASES_WITHOUT_PLANNER` for a model without the subgoal planner) on a
+    fresh copy of the run's model (or of ``model_file``), and the primitive steps that model had trained."""
     results, steps = {}, 0
     for case in CASES:
         model, env = trained_run(run, algo, env_id, seed=20_000, model_file=model_file)
-        if not isinstance(model, DIPPER) or model.planning != "subgoal":
-            raise ValueError(f"{run}: the model is not a DIPPER with planning='subgoal'; there is no planner to measure")
+        if not isinstance(model, DIPPER):
+            raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
+        if case not in CASES_WITHOUT_PLANNER and model.planning != "subgoal":
+            env.close()
+            continue
         steps = model.num_timesteps
         if case == "untrained_policy":
             reset_higher_policy(model, seed=0)
