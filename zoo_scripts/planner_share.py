@@ -42,7 +42,7 @@ from configs import episode_successes, measure_runs, trained_run
 
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 # Without the subgoal planner the model as trained is its policy alone.
-CASES_WITHOUT_PLANNER = ("as_trained", "untrained_policy", "lower_level_alone")
+CASES_WITHOUT_PLANNER = tuple(case for case in CASES if case != "policy_alone")
 
 
 def evaluate(model: DIPPER, env: VecEnv, n_episodes: int, goal_as_subgoal: bool = False) -> dict[str, float]:
@@ -83,15 +83,20 @@ def measure(
 ) -> tuple[int, dict[str, dict[str, float]]]:
     """Every case of :data:`CASES` (of :data:`CASES_WITHOUT_PLANNER` for a model without the subgoal planner) on a
     fresh copy of the run's model (or of ``model_file``), and the primitive steps that model had trained."""
-    results, steps = {}, 0
-    for case in CASES:
+
+    def fresh_model() -> tuple[DIPPER, VecEnv]:
         model, env = trained_run(run, algo, env_id, seed=20_000, model_file=model_file)
         if not isinstance(model, DIPPER):
             raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
-        if case not in CASES_WITHOUT_PLANNER and model.planning != "subgoal":
-            env.close()
-            continue
-        steps = model.num_timesteps
+        return model, env
+
+    results: dict[str, dict[str, float]] = {}
+    model, env = fresh_model()
+    steps = model.num_timesteps
+    cases = CASES if model.planning == "subgoal" else CASES_WITHOUT_PLANNER
+    for case in cases:
+        if results:  # every case after the first on a fresh copy: a case changes the model
+            model, env = fresh_model()
         if case == "untrained_policy":
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":
