@@ -154,6 +154,12 @@ def test_logged_values_are_read_at_or_before_a_step():
     assert np.isnan(plot.value_at(curve, 99)) and np.isnan(plot.value_at(None, 100))
 
 
+def test_step_ticks_read_as_budgets():
+    assert [plot.steps_label(steps) for steps in (0, 500, 15_000, 150_000, 640_000, 1_500_000)] == [
+        "0", "500", "15k", "150k", "640k", "1.5M"
+    ]  # fmt: skip
+
+
 def test_hierarchical_metrics_from_a_benchmark_csv(tmp_path):
     """The committed CSV of a benchmark draws the same figure as the run folders it came from."""
     csv = tmp_path / "bench.csv"

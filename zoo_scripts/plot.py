@@ -38,6 +38,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.artist import Artist
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 from stable_baselines3.common.monitor import LoadMonitorResultsError, load_results
 
 from sb3_dipper.common.files import write_atomically, write_bytes_atomically
@@ -172,6 +173,18 @@ def aggregate(curves: list[Curve], n_points: int = 100) -> tuple[np.ndarray, np.
     return steps, values.mean(axis=0), values.std(axis=0)
 
 
+def steps_label(steps: float, _position: object = None) -> str:
+    """A primitive-step tick as people write budgets: 150k, 1.5M (full numbers ran into each other at 640k)."""
+    if abs(steps) >= 1e6:
+        return f"{steps / 1e6:g}M"
+    return f"{steps / 1e3:g}k" if abs(steps) >= 1e3 else f"{steps:g}"
+
+
+def _steps_axis(ax: plt.Axes) -> None:
+    ax.set_xlabel("primitive steps")
+    ax.xaxis.set_major_formatter(FuncFormatter(steps_label))
+
+
 def _colors(names: list[str]) -> dict[str, tuple[float, ...]]:
     """One color per line name, the same in every panel and figure.
 
@@ -213,7 +226,8 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
                 if seed_steps[-1] > steps[-1]:
                     further = seed_steps >= steps[-1]
                     ax.plot(seed_steps[further], seed_success[further], color=colors[name], linewidth=0.8, linestyle=":")
-        ax.set(title=env_id, xlabel="primitive steps", ylim=(-0.02, 1.02))
+        ax.set(title=env_id, ylim=(-0.02, 1.02))
+        _steps_axis(ax)
         ax.grid(alpha=0.3)
     for ax in axes.flat[len(panels) :]:
         ax.set_axis_off()
@@ -307,7 +321,8 @@ def draw_hierarchical_metrics(
                 ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2)
                 plotted = True
         for row, name in enumerate(HIERARCHICAL_METRICS.values()):
-            axes[row, col].set(title=env_id if row == 0 else None, xlabel="primitive steps", ylabel=name if col == 0 else None)
+            axes[row, col].set(title=env_id if row == 0 else None, ylabel=name if col == 0 else None)
+            _steps_axis(axes[row, col])
             axes[row, col].grid(alpha=0.3)
     if not plotted:
         plt.close(fig)
