@@ -396,7 +396,9 @@ def test_ray_runs(tmp_path, ray_head):
 
 
 def test_profiles_measures_training_and_env_rates(capsys):
-    args = argparse.Namespace(envs=[ENV_ID], algos=["dipper", "sac"], steps=200, repeats=1, name="profiles", write=False)
+    args = argparse.Namespace(
+        envs=[ENV_ID], algos=["dipper", "sac"], steps=200, repeats=1, name="profiles", write=False, fused_adam=False
+    )
     benchmark.run_profiles(args)
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
     assert [row.split(" | ")[1] for row in rows] == ["DIPPER", "SAC+HER"]
@@ -404,3 +406,23 @@ def test_profiles_measures_training_and_env_rates(capsys):
         train_rate, env_rate, to_env = (float(cell) for cell in row.split(" | ")[2:5])
         assert 0 < train_rate < env_rate and to_env == pytest.approx(train_rate / env_rate, abs=0.01)
     assert rows[1].endswith("| 1.00 |")
+
+
+@pytest.mark.parametrize("algo", ["dipper", "hier", "sac"])
+def test_fused_adam_profiles_fuse_every_level_s_optimizers(algo):
+    model = benchmark.make_model(algo, ENV_ID, seed=0, overrides=benchmark.fused_adam_overrides(algo, ENV_ID))[0]
+    policies = [model.policy, *([model.lower.policy] if hasattr(model, "lower") else [])]
+    optimizers = [module.optimizer for policy in policies for module in policy.modules() if hasattr(module, "optimizer")]
+    assert len(optimizers) >= (3 if hasattr(model, "lower") else 2)  # actor and critic of each SAC level
+    assert all(optimizer.defaults["fused"] for optimizer in optimizers)
+    profile_nets = benchmark.load_entry(algo, ENV_ID)["policy_kwargs"]["net_arch"]
+    assert model.policy_kwargs["net_arch"] == profile_nets  # the fused copy keeps the profile's networks
+
+
+def test_profiles_measure_the_fused_adam_copies_beside_the_profiles(capsys):
+    args = argparse.Namespace(
+        envs=[ENV_ID], algos=["sac"], steps=100, repeats=1, name="profiles", write=False, fused_adam=True
+    )
+    benchmark.run_profiles(args)
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
+    assert [row.split(" | ")[1] for row in rows] == ["SAC+HER", "SAC+HER (fused)"]

@@ -2,6 +2,7 @@
 
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
     python zoo_scripts/benchmark.py profiles --write                # steps/s at the paper tasks' CPU profiles
+    python zoo_scripts/benchmark.py profiles --envs FetchPushFixed-v0 --fused-adam   # and with fused Adam optimizers
     python zoo_scripts/benchmark.py updates                         # ms per lower/higher update vs SB3's SAC update
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
     python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set "planning='off'" --name ablations
@@ -82,6 +83,7 @@ import argparse
 import ast
 import csv
 import datetime
+import inspect
 import json
 import os
 import platform
@@ -105,7 +107,7 @@ import torch as th
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plot
-from configs import make_env, make_model, torch_threads
+from configs import ALGORITHMS, load_entry, make_env, make_model, torch_threads
 from plot import LABELS, label
 
 from sb3_dipper.common.files import write_bytes_atomically
@@ -255,16 +257,40 @@ def env_steps_per_second(env_id: str, n_envs: int, steps: int) -> float:
     return (steps // n_envs) * n_envs / seconds
 
 
+FUSED_ADAM = "fused"  # the variant name of a profile whose optimizers are fused Adam
+
+
+def fused_adam_overrides(algo: str, env_id: str) -> dict[str, Any]:
+    """The entry's network kwargs of every level with ``optimizer_kwargs={"fused": True}``: ``torch.optim.Adam``'s
+    one-kernel update of all parameters instead of its loop over tensors in Python, the same math (the SAC entropy
+    coefficient's own optimizer, used only with ``ent_coef='auto'``, stays SB3's)."""
+    entry = load_entry(algo, env_id)
+    levels = ["policy_kwargs"]
+    if "low_policy_kwargs" in inspect.signature(ALGORITHMS[algo]).parameters:
+        levels.append("low_policy_kwargs")
+    overrides = {}
+    for key in levels:
+        kwargs = dict(entry.get(key) or {})
+        kwargs["optimizer_kwargs"] = {**kwargs.get("optimizer_kwargs", {}), "fused": True}
+        overrides[key] = kwargs
+    return overrides
+
+
 def run_profiles(args: argparse.Namespace) -> None:
     """Training steps per second of each algorithm at each task's CPU profile, beside the env's own step rate.
 
     The models of one task are warmed up past ``learning_starts``, then trained in interleaved chunks of
     ``--steps`` primitive steps (the median chunk counts), in this one process, so the ratios share the machine's state.
+    With ``--fused-adam`` each algorithm is measured a second time, as ``<algo>-fused``, with fused Adam optimizers.
     """
     th.set_num_threads(torch_threads())
     rows, records = [], []
     for env_id in args.envs:
         models = {algo: make_model(algo, env_id, seed=0)[0] for algo in args.algos}
+        if args.fused_adam:
+            for algo in args.algos:
+                overrides = fused_adam_overrides(algo, env_id)
+                models[f"{algo}-{FUSED_ADAM}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
         n_envs = models[args.algos[0]].n_envs
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
@@ -275,7 +301,7 @@ def run_profiles(args: argparse.Namespace) -> None:
         for algo, rate in rates.items():
             versus_sac = f"{rate / baseline:.2f}" if baseline else "-"
             ratios = f"{rate / env_rate:.2f} | {versus_sac}"
-            rows.append(f"| `{env_id}` | {LABELS[algo]} | {rate:.0f} | {env_rate:.0f} | {ratios} |")
+            rows.append(f"| `{env_id}` | {label(algo)} | {rate:.0f} | {env_rate:.0f} | {ratios} |")
             records.append(f"{env_id},{algo},{n_envs},{rate:.2f},{env_rate:.2f}")
         print(rows[-len(rates) :], flush=True)
     csv = RESULTS_DIR / f"{args.name}.csv"
@@ -748,6 +774,9 @@ def main() -> None:
     profiles.add_argument("--repeats", type=int, default=3)
     profiles.add_argument("--name", default="profiles")
     profiles.add_argument("--write", action="store_true", help="write the section of BENCHMARKS.md and the CSV")
+    profiles.add_argument(
+        "--fused-adam", action="store_true", help="also measure each algorithm with fused Adam optimizers (<algo>-fused)"
+    )
     updates = commands.add_parser("updates", help="ms per lower and higher training update, vs SB3's SAC update")
     updates.add_argument("--env", default="FetchPickAndPlaceFixed-v0")
     updates.add_argument("--warmup", type=int, default=3000, help="primitive steps trained past learning_starts first")
