@@ -6,7 +6,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from sb3_dipper.envs.demos import default_demonstrations
+from sb3_dipper.envs.demos import default_demonstrations, expert_demonstrations
 from zoo_scripts.clone_demonstration import first_departure, fit_clone, main, run_clone
 
 
@@ -43,6 +43,23 @@ def test_the_command_writes_one_csv_row_per_episode(tmp_path, capsys):
     ]
     assert "FetchPushFixed-v0: success 0.00 over 2 episodes" in capsys.readouterr().out
     assert not list(tmp_path.glob("*.tmp*"))
+
+
+def test_the_command_clones_the_first_episodes_of_a_demonstration_file(tmp_path, capsys):
+    demos = tmp_path / "dart.npz"
+    expert_demonstrations("FetchPushFixed-v0", n_episodes=3, action_noise=0.1).save(demos)
+    out = tmp_path / "clone.csv"
+    args = ["--net-arch", "16", "--fit-steps", "5", "--episodes", "1", "--csv", str(out), "--demo-path", str(demos)]
+    main(["FetchPushFixed-v0", *args, "--n-demos", "1", "2"])
+    rows = list(csv.DictReader(out.open()))
+    assert [(row["demonstrations"], row["n_demos"]) for row in rows] == [("dart.npz", "1"), ("dart.npz", "2")]
+    assert "FetchPushFixed-v0 (2 of dart.npz): success" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="n_demos between 1 and 3"):
+        main(["FetchPushFixed-v0", *args, "--n-demos", "4"])
+    with pytest.raises(ValueError, match="the env's has"):
+        main(["FetchReach-v4", *args])
+    with pytest.raises(SystemExit):
+        main(["FetchPushFixed-v0", "FetchPickAndPlaceFixed-v0", *args])
 
 
 def test_a_task_without_a_demonstration_is_named_in_the_error(tmp_path):

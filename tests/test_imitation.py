@@ -152,6 +152,78 @@ def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypa
     np.testing.assert_array_equal(first.actions, fresh.actions)
 
 
+class _LineEnv(gym.Env):
+    """A goal env on a line whose next position is the position plus the executed action: it shows what was executed."""
+
+    observation_space = gym.spaces.Dict(
+        {key: gym.spaces.Box(-10.0, 10.0, (1,)) for key in ("observation", "achieved_goal", "desired_goal")}
+    )
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,))
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.position, self.steps = np.zeros(1, dtype=np.float32), 0
+        return self._observation(), {}
+
+    def step(self, action):
+        self.position, self.steps = self.position + action, self.steps + 1
+        return self._observation(), 0.0, False, self.steps == 8, {"is_success": 1.0}
+
+    def _observation(self):
+        goal = np.ones(1, dtype=np.float32)
+        return {"observation": self.position.copy(), "achieved_goal": self.position.copy(), "desired_goal": goal}
+
+
+class _HalfStepExpert:
+    def __init__(self, env):
+        pass
+
+    def reset(self):
+        pass
+
+    def act(self, observation):
+        return np.array([0.5], dtype=np.float32)
+
+
+@pytest.fixture
+def line_env_id():
+    gym.register("DartLine-v0", entry_point=_LineEnv)
+    yield "DartLine-v0"
+    del gym.registry["DartLine-v0"]
+
+
+def test_dart_demonstrations_record_the_experts_action_and_execute_a_noisy_one(line_env_id):
+    from sb3_dipper.common.demonstrations import collect_demonstrations
+
+    clean = collect_demonstrations(line_env_id, _HalfStepExpert, n_episodes=2)
+    executed = clean.next_observations["observation"] - clean.observations["observation"]
+    np.testing.assert_allclose(executed, clean.actions, atol=1e-6)
+    noisy = collect_demonstrations(line_env_id, _HalfStepExpert, n_episodes=2, action_noise=0.3)
+    np.testing.assert_array_equal(noisy.actions, 0.5)  # what the expert asked for, not what the env did
+    executed = noisy.next_observations["observation"] - noisy.observations["observation"]
+    assert np.all(np.abs(executed) <= 1.0) and 0.15 < np.std(executed) < 0.45
+    assert "action noise 0.3 (DART)" in noisy.source
+    again = collect_demonstrations(line_env_id, _HalfStepExpert, n_episodes=2, action_noise=0.3)
+    np.testing.assert_array_equal(again.observations["observation"], noisy.observations["observation"])
+    other_seed = collect_demonstrations(line_env_id, _HalfStepExpert, n_episodes=2, seed=1, action_noise=0.3)
+    assert not np.array_equal(other_seed.observations["observation"], noisy.observations["observation"])
+    with pytest.raises(ValueError, match=r"action_noise must be a finite standard deviation >= 0, got -0\.1"):
+        collect_demonstrations(line_env_id, _HalfStepExpert, n_episodes=1, action_noise=-0.1)
+
+
+def test_the_demos_command_writes_dart_episodes(tmp_path, capsys):
+    from sb3_dipper.envs.demos import main
+
+    out = tmp_path / "dart.npz"
+    main(["--env", "PointMazeFourRooms-v0", "--n-episodes", "2", "--action-noise", "0.2", "--out", str(out)])
+    demonstrations = load_demonstrations(out)
+    assert demonstrations.n_episodes == 2 and "Wrote 2 episodes" in capsys.readouterr().out
+    clean = expert_demonstrations("PointMazeFourRooms-v0", n_episodes=2)
+    assert not np.array_equal(demonstrations.observations["observation"], clean.observations["observation"])
+    with pytest.raises(SystemExit):
+        main(["--env", "PointMazeFourRooms-v0", "--action-noise", "-1", "--out", str(out)])
+
+
 def test_auto_demonstrations_name_the_tasks_that_have_one():
     """demo_path="auto" loads what the task registered (sb3_dipper.envs, one per scripted expert); elsewhere it says
     which tasks have one and what to pass instead."""

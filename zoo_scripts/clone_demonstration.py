@@ -10,6 +10,14 @@ and the behaviour-cloning term can hand it over; where the clone fails, the lowe
 by trial and error. Per episode the script reports the success and the first step at which the state leaves the
 demonstration's (largest difference of the ``observation`` vectors above ``--tolerance``): the moment compounding
 errors take the clone off the demonstrated path. Episode seed 0 starts where the demonstration started.
+
+``--demo-path`` clones the first ``--n-demos`` episodes of a demonstration file instead (``sb3-dipper-demos``; with
+``--action-noise`` it writes DART episodes, whose states include the expert's corrections of its own drift):
+
+    sb3-dipper-demos --env FrankaKitchenMicrowaveBurner-v0 --n-episodes 20 --action-noise 0.1 --out kitchen-dart.npz
+    python zoo_scripts/clone_demonstration.py FrankaKitchenMicrowaveBurner-v0 --demo-path kitchen-dart.npz --n-demos 1 5 20
+
+The departure step is then measured from the file's first episode.
 """
 
 from __future__ import annotations
@@ -32,9 +40,20 @@ from stable_baselines3.common.torch_layers import create_mlp
 import sb3_dipper  # noqa: F401  (registers our env ids)
 from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.files import write_bytes_atomically
+from sb3_dipper.common.demonstrations import load_demonstrations
 from sb3_dipper.envs.demos import default_demonstrations
 
-CSV_FIELDS = ("env", "fit_steps", "fit_loss", "episode_seed", "success", "departure_step", "episode_steps")
+CSV_FIELDS = (
+    "env",
+    "demonstrations",
+    "n_demos",
+    "fit_steps",
+    "fit_loss",
+    "episode_seed",
+    "success",
+    "departure_step",
+    "episode_steps",
+)
 
 
 @dataclass
@@ -100,19 +119,32 @@ def run_clone(clone: Clone, env: gym.Env, demonstration: Demonstrations, episode
     }
 
 
-def clone_rows(env_id: str, net_arch: list[int], fit_steps: int, episodes: int, tolerance: float) -> list[dict]:
-    """Fit a clone of ``env_id``'s default demonstration and run it for episode seeds ``0 .. episodes - 1``."""
-    demonstration = default_demonstrations(env_id).first_episodes(1)
-    clone = fit_clone(demonstration, net_arch, fit_steps)
+def clone_rows(
+    env_id: str,
+    net_arch: list[int],
+    fit_steps: int,
+    episodes: int,
+    tolerance: float,
+    demo_path: Path | None = None,
+    n_demos: int = 1,
+) -> list[dict]:
+    """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
+    and run it for episode seeds ``0 .. episodes - 1``."""
+    demonstrations = default_demonstrations(env_id) if demo_path is None else load_demonstrations(demo_path)
+    demonstrations = demonstrations.first_episodes(n_demos)
     env = gym.make(env_id)
     try:
+        demonstrations.check_spaces(env.observation_space, env.action_space)
+        clone = fit_clone(demonstrations, net_arch, fit_steps)
         return [
             {
                 "env": env_id,
+                "demonstrations": "default" if demo_path is None else demo_path.name,
+                "n_demos": n_demos,
                 "fit_steps": fit_steps,
                 "fit_loss": f"{clone.fit_loss:.2e}",
                 "episode_seed": seed,
-                **run_clone(clone, env, demonstration, seed, tolerance),
+                **run_clone(clone, env, demonstrations.first_episodes(1), seed, tolerance),
             }
             for seed in range(episodes)
         ]
@@ -127,20 +159,31 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--fit-steps", type=int, default=5000)
     parser.add_argument("--episodes", type=int, default=8)
     parser.add_argument("--tolerance", type=float, default=0.05, help="largest observation difference still on the path")
+    parser.add_argument("--demo-path", type=Path, help="an npz file of sb3-dipper-demos (default: the task's default one)")
+    parser.add_argument(
+        "--n-demos", type=int, nargs="+", default=[1], help="clone the file's first N episodes (one clone per N)"
+    )
     parser.add_argument("--csv", type=Path, help="also write one row per episode here")
     args = parser.parse_args(argv)
-    if args.fit_steps < 1 or args.episodes < 1:
-        parser.error("--fit-steps and --episodes must be at least 1")
+    if args.fit_steps < 1 or args.episodes < 1 or min(args.n_demos) < 1:
+        parser.error("--fit-steps, --episodes and --n-demos must be at least 1")
+    if args.demo_path is not None and len(args.envs) != 1:
+        parser.error(f"--demo-path holds one task's demonstrations: give one env, not {len(args.envs)}")
     th.set_num_threads(1)
     rows = []
     for env_id in args.envs:
-        env_rows = clone_rows(env_id, args.net_arch, args.fit_steps, args.episodes, args.tolerance)
-        departures = [row["departure_step"] for row in env_rows]
-        print(
-            f"{env_id}: success {np.mean([row['success'] for row in env_rows]):.2f} over {args.episodes} episodes, "
-            f"fit loss {env_rows[0]['fit_loss']}, departure steps {departures} of {env_rows[0]['episode_steps']}"
-        )
-        rows += env_rows
+        for n_demos in args.n_demos:
+            env_rows = clone_rows(
+                env_id, args.net_arch, args.fit_steps, args.episodes, args.tolerance, args.demo_path, n_demos
+            )
+            departures = [row["departure_step"] for row in env_rows]
+            cloned = "" if args.demo_path is None else f" ({n_demos} of {args.demo_path.name})"
+            print(
+                f"{env_id}{cloned}: success {np.mean([row['success'] for row in env_rows]):.2f} over {args.episodes} "
+                f"episodes, fit loss {env_rows[0]['fit_loss']}, departure steps {departures} of "
+                f"{env_rows[0]['episode_steps']}"
+            )
+            rows += env_rows
     if args.csv is not None:
         text = io.StringIO()
         writer = csv.DictWriter(text, fieldnames=CSV_FIELDS)

@@ -137,13 +137,23 @@ def collect_demonstrations(
     seed: int = 0,
     env_kwargs: dict[str, Any] | None = None,
     only_successes: bool = True,
+    action_noise: float = 0.0,
 ) -> Demonstrations:
     """Run ``expert_factory(env.unwrapped)`` for ``n_episodes`` episodes (seeds ``seed``, ``seed + 1``, ...).
 
     With ``only_successes``, failed episodes are skipped (the next seed is tried) so every demonstration succeeds.
+
+    With ``action_noise`` the episodes are DART's (Laskey et al., 2017): the env executes the expert's action plus
+    Gaussian noise of that standard deviation (clipped to the action box), while the file records the expert's own
+    action. A scripted expert reads the simulator, so it corrects the noise's drift, and a clone of the episodes learns
+    those corrections: the states a clone's own small errors lead to are in the data. The noise is drawn from a
+    generator seeded with ``seed``, so the same arguments give the same episodes.
     """
+    if not (np.isfinite(action_noise) and action_noise >= 0.0):
+        raise ValueError(f"action_noise must be a finite standard deviation >= 0, got {action_noise}")
     env = gym.make(env_id, **(env_kwargs or {}))
     expert = expert_factory(env.unwrapped)
+    noise = np.random.default_rng(seed)
     episodes: list[dict[str, Any]] = []
     episode_seed = seed
     while len(episodes) < n_episodes:
@@ -151,7 +161,7 @@ def collect_demonstrations(
             raise RuntimeError(
                 f"The expert of {env_id} keeps failing: {len(episodes)} successes in {episode_seed - seed} tries"
             )
-        episode = _run_episode(env, expert, episode_seed)
+        episode = _run_episode(env, expert, episode_seed, action_noise, noise)
         episode_seed += 1
         if episode["successes"][-1] or not only_successes:
             episodes.append(episode)
@@ -164,18 +174,24 @@ def collect_demonstrations(
         successes=np.concatenate([e["successes"] for e in episodes]).astype(np.float32),
         episode_lengths=np.array([len(e["actions"]) for e in episodes], dtype=np.int64),
         env_id=env_id,
-        source=f"the scripted expert of {env_id}",
+        source=f"the scripted expert of {env_id}" + (f", action noise {action_noise} (DART)" if action_noise else ""),
     )
 
 
-def _run_episode(env: gym.Env, expert: ScriptedExpert, seed: int) -> dict[str, Any]:
+def _run_episode(
+    env: gym.Env, expert: ScriptedExpert, seed: int, action_noise: float, noise: np.random.Generator
+) -> dict[str, Any]:
     obs, _ = env.reset(seed=seed)
     expert.reset()
     steps: dict[str, list] = {"observations": [], "next_observations": [], "actions": [], "rewards": [], "successes": []}
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
     done = False
     while not done:
         action = np.asarray(expert.act(obs), dtype=np.float32)
-        next_obs, reward, terminated, truncated, info = env.step(action)
+        executed = (
+            action if action_noise == 0.0 else np.clip(action + action_noise * noise.standard_normal(action.shape), low, high)
+        )
+        next_obs, reward, terminated, truncated, info = env.step(executed.astype(np.float32))
         for name, value in (("observations", obs), ("next_observations", next_obs)):
             steps[name].append({key: np.asarray(value[key], dtype=np.float32) for key in OBSERVATION_KEYS})
         steps["actions"].append(action)

@@ -13,14 +13,20 @@ from sb3_dipper.common.demonstrations import Demonstrations, collect_demonstrati
 
 
 def expert_demonstrations(
-    env_id: str, n_episodes: int, seed: int = 0, env_kwargs: dict[str, Any] | None = None, only_successes: bool = True
+    env_id: str,
+    n_episodes: int,
+    seed: int = 0,
+    env_kwargs: dict[str, Any] | None = None,
+    only_successes: bool = True,
+    action_noise: float = 0.0,
 ) -> Demonstrations:
-    """Episodes of the registered scripted expert of ``env_id``."""
+    """Episodes of the registered scripted expert of ``env_id`` (``action_noise``: DART episodes, see
+    :func:`~sb3_dipper.common.demonstrations.collect_demonstrations`)."""
     from sb3_dipper.envs import EXPERTS
 
     if env_id not in EXPERTS:
         raise ValueError(f"No scripted expert for {env_id!r}; experts exist for {sorted(EXPERTS)}")
-    return collect_demonstrations(env_id, EXPERTS[env_id], n_episodes, seed, env_kwargs, only_successes)
+    return collect_demonstrations(env_id, EXPERTS[env_id], n_episodes, seed, env_kwargs, only_successes, action_noise)
 
 
 def default_demonstration_path(env_id: str) -> Path:
@@ -56,10 +62,20 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--keep-failures", action="store_true", help="also keep episodes the expert failed")
+    parser.add_argument(
+        "--action-noise",
+        type=float,
+        default=0.0,
+        help="DART: execute the expert's action plus Gaussian noise of this standard deviation, record the expert's",
+    )
     args = parser.parse_args(argv)
+    if not args.action_noise >= 0.0:
+        parser.error(f"--action-noise must be >= 0, got {args.action_noise}")
     import sb3_dipper  # noqa: F401  (registers our env ids)
 
-    demonstrations = expert_demonstrations(args.env, args.n_episodes, args.seed, only_successes=not args.keep_failures)
+    demonstrations = expert_demonstrations(
+        args.env, args.n_episodes, args.seed, only_successes=not args.keep_failures, action_noise=args.action_noise
+    )
     demonstrations.save(args.out)
     success = demonstrations.successes[np.cumsum(demonstrations.episode_lengths) - 1].mean()
     print(
