@@ -110,3 +110,20 @@ def test_a_flat_model_is_refused_with_the_reason(tmp_path):
     )
     assert done.returncode == 2
     assert "not a hierarchical algorithm" in done.stderr
+
+
+def test_a_run_still_training_is_measured_at_its_checkpoints_and_without_them_refused(tmp_path):
+    run = tmp_path / "dipper" / f"{ENV_ID}_1"
+    run.mkdir(parents=True)
+    model = tiny_pick_and_place_model()
+    model.learn(60)
+    model.save(run / "rl_model_60_steps.zip")  # no final model yet: the run is still training
+    command = [sys.executable, str(SCRIPT), str(run), "--algo", "dipper", "--csv", str(tmp_path / "c.csv")]
+    refused = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 2
+    assert "has not finished" in refused.stderr and "--checkpoints" in refused.stderr
+    measured = subprocess.run([*command, "--checkpoints"], capture_output=True, text=True, timeout=300)
+    assert measured.returncode == 0, measured.stderr[-3000:]
+    with open(tmp_path / "c.csv") as file:
+        assert [row["driver"] for row in csv.DictReader(file)] == ["oracle", "higher_level"]
+    assert not (run / "oracle_subgoals.json").exists()  # the report is the final model's

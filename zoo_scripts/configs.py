@@ -130,9 +130,9 @@ def measure_runs(
     columns: tuple[str, str, str],
 ) -> None:
     """Measure every run of ``args.runs`` with ``measure(run, args.algo, env_id, args.episodes, model_file)``
-    (``model_file`` ``None``: the run's final model), also at every checkpoint the run kept with ``args.checkpoints``;
-    print each result, write the final model's as ``<run>/<report>`` (JSON) and, with ``args.csv``, one CSV row per
-    model and case.
+    (``model_file`` ``None``: the run's final model, where it has one), also at every checkpoint the run kept with
+    ``args.checkpoints``; print each result, write the final model's as ``<run>/<report>`` (JSON) and, with
+    ``args.csv``, one CSV row per model and case.
 
     :param columns: the CSV's case column and its two metrics, e.g. ``("driver", "success", "options_reached")``
     """
@@ -140,7 +140,16 @@ def measure_runs(
     rows = [",".join(("run", "steps", case_column, *metrics))]
     for run in args.runs:
         env_id = args.env or run.name.rsplit("_", 1)[0]
-        for model_file in [*(checkpoints(run) if args.checkpoints else []), None]:
+        models: list[Path | None] = [*(checkpoints(run) if args.checkpoints else [])]
+        # A run still training (or paused) has checkpoints but no final model yet: measure what it has.
+        if (run / f"{env_id}.zip").exists():
+            models.append(None)
+        if not models:
+            parser.error(
+                f"{run} has no final model ({env_id}.zip: the run has not finished)"
+                + ("" if args.checkpoints else "; pass --checkpoints to measure the checkpoints it kept")
+            )
+        for model_file in models:
             try:
                 steps, results = measure(run, args.algo, env_id, args.episodes, model_file)
             except ValueError as error:
