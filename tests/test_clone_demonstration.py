@@ -7,7 +7,17 @@ import numpy as np
 import pytest
 
 from sb3_dipper.envs.demos import default_demonstrations, expert_demonstrations
-from zoo_scripts.clone_demonstration import first_departure, fit_clone, main, run_clone
+from sb3_dipper.common.imitation import DemonstrationBuffer
+from zoo_scripts import clone_demonstration
+from zoo_scripts.clone_demonstration import (
+    first_departure,
+    fit_clone,
+    goal_conditioned_batches,
+    main,
+    run_clone,
+    subgoal_conditioned_batches,
+)
+from zoo_scripts.oracle_subgoals import oracle_subgoals
 
 
 def test_the_departure_is_the_first_step_off_the_demonstrated_states():
@@ -24,13 +34,35 @@ def test_a_clone_of_the_fixed_pick_and_place_demonstration_solves_it_closed_loop
     # enough there (BENCHMARKS.md, "what one demonstration teaches"). An unfitted network fails.
     demonstration = default_demonstrations("FetchPickAndPlaceFixed-v0").first_episodes(1)
     env = gym.make("FetchPickAndPlaceFixed-v0")
-    untrained = run_clone(fit_clone(demonstration, [64, 64], steps=0), env, demonstration, 0, 0.05)
+    sample_batch = goal_conditioned_batches(demonstration, seed=0)
+    reference, _ = sample_batch(1000)
+    untrained = run_clone(fit_clone(sample_batch, reference, [64, 64], steps=0), env, demonstration, 0, 0.05)
     assert untrained["success"] == 0.0 and untrained["departure_step"] != ""
-    clone = fit_clone(demonstration, [64, 64], steps=1500)
+    clone = fit_clone(sample_batch, reference, [64, 64], steps=1500)
     assert clone.fit_loss < 1e-3
     episode = run_clone(clone, env, demonstration, 0, 0.05)
     env.close()
-    assert episode == {"success": 1.0, "departure_step": "", "episode_steps": 50}
+    assert episode == {"success": 1.0, "departure_step": "", "episode_steps": 50, "options_reached": ""}
+
+
+def test_a_clone_trained_as_a_lower_level_follows_the_demonstrations_subgoals():
+    # Fitted on the subgoals the lower level's cloning term samples (later achieved subgoals, or the goal), then driven
+    # by the demonstration's subgoals at option ends, as oracle_subgoals.py drives a trained lower level.
+    demonstration = default_demonstrations("FetchPickAndPlaceFixed-v0").first_episodes(1)
+    env = gym.make("FetchPickAndPlaceFixed-v0")
+    space = env.unwrapped.subgoal_space
+    sample_batch = subgoal_conditioned_batches(DemonstrationBuffer(demonstration, space, demonstration.actions), 0)
+    inputs, actions = sample_batch(4)
+    assert inputs.shape == (4, demonstration.observations["observation"].shape[1] + space.dim) and actions.shape == (4, 4)
+    reference, _ = sample_batch(1000)
+    subgoals = oracle_subgoals("FetchPickAndPlaceFixed-v0", 7, space)
+    untrained = fit_clone(sample_batch, reference, [64, 64], steps=0)
+    driven = run_clone(untrained, env, demonstration, 0, 0.05, subgoals, option_steps=7)
+    assert driven["success"] == 0.0 and float(driven["options_reached"]) < 0.5
+    trained = fit_clone(sample_batch, reference, [64, 64], steps=1500)
+    driven = run_clone(trained, env, demonstration, 0, 0.05, subgoals, option_steps=7)
+    env.close()
+    assert driven["success"] == 1.0 and float(driven["options_reached"]) == 1.0  # all 8 options, the last at step 50
 
 
 def test_the_command_writes_one_csv_row_per_episode(tmp_path, capsys):
@@ -65,3 +97,24 @@ def test_the_command_clones_the_first_episodes_of_a_demonstration_file(tmp_path,
 def test_a_task_without_a_demonstration_is_named_in_the_error(tmp_path):
     with pytest.raises(ValueError, match="No scripted expert for 'CartPole-v1'"):
         main(["CartPole-v1", "--episodes", "1"])
+
+
+def test_the_command_clones_as_a_lower_level_with_option_steps(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "clone.csv"
+    args = ["--net-arch", "16", "--fit-steps", "5", "--episodes", "1", "--option-steps", "7", "--csv", str(out)]
+    main(["FetchPushFixed-v0", *args])
+    (row,) = list(csv.DictReader(out.open()))
+    assert row["option_steps"] == "7" and 0.0 <= float(row["options_reached"]) <= 1.0
+    assert "FetchPushFixed-v0: success 0.00, options reached" in capsys.readouterr().out
+
+    class WithoutSubgoals(gym.Wrapper):
+        @property
+        def unwrapped(self):
+            return self  # hides the task's subgoal space
+
+    make = gym.make
+    monkeypatch.setattr(clone_demonstration.gym, "make", lambda env_id: WithoutSubgoals(make(env_id)))
+    with pytest.raises(ValueError, match="--option-steps: FetchPushFixed-v0 defines no subgoal space"):
+        main(["FetchPushFixed-v0", *args])
+    with pytest.raises(SystemExit):
+        main(["FetchPushFixed-v0", *args[:-3], "0"])

@@ -30,7 +30,7 @@ def tiny_pick_and_place_model() -> DIPPER:
 
 
 def test_the_oracle_subgoals_are_the_demonstrations_positions_at_option_ends():
-    subgoals = oracle_subgoals(ENV_ID, 7, tiny_pick_and_place_model())
+    subgoals = oracle_subgoals(ENV_ID, 7, tiny_pick_and_place_model().subgoal_space)
     # 50 demo steps: the ends of options 1..7 (steps 7, 14, ..., 49) and the last step.
     assert subgoals.shape == (8, 3)
     np.testing.assert_allclose(subgoals[0], [*FIXED_OBJECT_XY, OBJECT_REST_Z], atol=0.01)  # not lifted yet at step 7
@@ -71,7 +71,7 @@ def test_every_episode_starts_where_the_demonstration_started_on_a_random_task()
         return observation
 
     env.reset = recorded_reset
-    result = run_episodes(model, env, 2, oracle_subgoals(env_id, 7, model))
+    result = run_episodes(model, env, 2, oracle_subgoals(env_id, 7, model.subgoal_space))
     demonstration = default_demonstrations(env_id).first_episodes(1)
     assert len(starts) == 2 and 0.0 <= result["options_reached"] <= 1.0
     for start in starts:

@@ -75,7 +75,7 @@ def demonstrated_subgoals_reached(model, env_id: str) -> float:
     training_env = model.get_vec_normalize_env()
     if training_env is not None:
         env.obs_rms, env.training = training_env.obs_rms, False
-    reached = run_episodes(model, env, 1, oracle_subgoals(env_id, model.option_steps, model))["options_reached"]
+    reached = run_episodes(model, env, 1, oracle_subgoals(env_id, model.option_steps, model.subgoal_space))["options_reached"]
     env.close()
     return reached
 

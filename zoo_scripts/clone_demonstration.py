@@ -18,6 +18,15 @@ errors take the clone off the demonstrated path. Episode seed 0 starts where the
     python zoo_scripts/clone_demonstration.py FrankaKitchenMicrowaveBurner-v0 --demo-path kitchen-dart.npz --n-demos 1 5 20
 
 The departure step is then measured from the file's first episode.
+
+``--option-steps K`` clones as a lower level learns from the demonstrations: each step under a subgoal the algorithms'
+own :class:`~sb3_dipper.common.imitation.DemonstrationBuffer` samples (a later achieved subgoal of its episode, or the
+goal), then drives the clone with the default demonstration's subgoals every K steps, as ``oracle_subgoals.py`` drives
+a trained run's lower level; the CSV then also gives the share of options that ended at their subgoal. Where this
+clone follows the subgoals and a trained lower level does not, the cloning term is not what fails it:
+
+    python zoo_scripts/clone_demonstration.py FrankaKitchenMicrowaveBurner-v0 --demo-path kitchen-dart.npz \
+        --n-demos 20 --option-steps 15
 """
 
 from __future__ import annotations
@@ -26,9 +35,11 @@ import argparse
 import csv
 import io
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from collections.abc import Callable
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -38,21 +49,26 @@ import torch as th
 from stable_baselines3.common.torch_layers import create_mlp
 
 import sb3_dipper  # noqa: F401  (registers our env ids)
-from sb3_dipper.common.demonstrations import Demonstrations
+from sb3_dipper.common.demonstrations import Demonstrations, load_demonstrations
 from sb3_dipper.common.files import write_bytes_atomically
-from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.imitation import DemonstrationBuffer
 from sb3_dipper.envs.demos import default_demonstrations
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from oracle_subgoals import oracle_subgoals
 
 CSV_FIELDS = (
     "env",
     "demonstrations",
     "n_demos",
+    "option_steps",
     "fit_steps",
     "fit_loss",
     "episode_seed",
     "success",
     "departure_step",
     "episode_steps",
+    "options_reached",
 )
 
 
@@ -71,26 +87,56 @@ class Clone:
             return self.network(th.as_tensor(features, dtype=th.float32)).numpy()
 
 
-def fit_clone(demonstrations: Demonstrations, net_arch: list[int], steps: int, batch_size: int = 128, seed: int = 0) -> Clone:
-    """Fit a :class:`Clone` to every step of ``demonstrations`` by ``steps`` Adam steps (learning rate 1e-3) on the
-    mean squared action error. Actions are assumed in ``[-1, 1]`` (the tanh output), as in every task here."""
-    generator = np.random.default_rng(seed)
+def fit_clone(
+    sample_batch: Callable[[int], tuple[np.ndarray, np.ndarray]],
+    reference_inputs: np.ndarray,
+    net_arch: list[int],
+    steps: int,
+    batch_size: int = 128,
+    seed: int = 0,
+) -> Clone:
+    """Fit a :class:`Clone` by ``steps`` Adam steps (learning rate 1e-3) on the mean squared action error of batches
+    ``(inputs, actions) = sample_batch(batch_size)``, inputs standardised by ``reference_inputs``. Actions are assumed
+    in ``[-1, 1]`` (the tanh output), as in every task here."""
     th.manual_seed(seed)
-    inputs = np.concatenate([demonstrations.observations["observation"], demonstrations.observations["desired_goal"]], 1)
     # The floor keeps inputs that never vary in the demonstration (a fixed goal) from being scaled up without bound.
-    mean, std = inputs.mean(0), inputs.std(0) + 1e-2
-    features = th.as_tensor((inputs - mean) / std, dtype=th.float32)
-    targets = th.as_tensor(demonstrations.actions, dtype=th.float32)
-    network = th.nn.Sequential(*create_mlp(features.shape[1], targets.shape[1], net_arch, squash_output=True))
+    mean, std = reference_inputs.mean(0), reference_inputs.std(0) + 1e-2
+    inputs, targets = sample_batch(1)
+    network = th.nn.Sequential(*create_mlp(inputs.shape[1], targets.shape[1], net_arch, squash_output=True))
     optimizer = th.optim.Adam(network.parameters(), lr=1e-3)
     loss = th.zeros(())
     for _ in range(steps):
-        rows = th.as_tensor(generator.integers(0, len(targets), batch_size))
-        loss = (network(features[rows]) - targets[rows]).pow(2).mean()
+        inputs, targets = sample_batch(batch_size)
+        features = th.as_tensor((inputs - mean) / std, dtype=th.float32)
+        loss = (network(features) - th.as_tensor(targets, dtype=th.float32)).pow(2).mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
     return Clone(network, mean, std, loss.item())
+
+
+def goal_conditioned_batches(demonstrations: Demonstrations, seed: int) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+    """Demonstration steps with their own desired goal: what a flat goal-conditioned policy clones."""
+    generator = np.random.default_rng(seed)
+    inputs = np.concatenate([demonstrations.observations["observation"], demonstrations.observations["desired_goal"]], 1)
+
+    def sample_batch(batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+        rows = generator.integers(0, len(inputs), batch_size)
+        return inputs[rows], demonstrations.actions[rows]
+
+    return sample_batch
+
+
+def subgoal_conditioned_batches(buffer: DemonstrationBuffer, seed: int) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+    """Demonstration steps with the subgoals the lower level clones them under: a later achieved subgoal of the episode
+    (probability 0.8) or the projected desired goal, sampled by the algorithms' own :class:`DemonstrationBuffer`."""
+    np.random.seed(seed)  # the buffer samples with numpy's global generator, as in training
+
+    def sample_batch(batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+        observations, actions, _, _ = buffer.sample(batch_size)
+        return np.concatenate([observations["observation"], observations["desired_goal"]], 1), actions
+
+    return sample_batch
 
 
 def first_departure(states: np.ndarray, demonstrated: np.ndarray, tolerance: float) -> int | None:
@@ -101,21 +147,39 @@ def first_departure(states: np.ndarray, demonstrated: np.ndarray, tolerance: flo
     return int(np.argmax(far)) if far.any() else None
 
 
-def run_clone(clone: Clone, env: gym.Env, demonstration: Demonstrations, episode_seed: int, tolerance: float) -> dict:
+def run_clone(
+    clone: Clone,
+    env: gym.Env,
+    demonstration: Demonstrations,
+    episode_seed: int,
+    tolerance: float,
+    subgoals: np.ndarray | None = None,
+    option_steps: int = 1,
+) -> dict:
     """One closed-loop episode of the clone from ``env.reset(seed=episode_seed)``: its success (``is_success`` at the
-    last step, as the benchmarks evaluate), departure step from the demonstration's states and length."""
+    last step, as the benchmarks evaluate), departure step from the demonstration's states and length. With
+    ``subgoals`` (one per option of ``option_steps`` steps) the clone sees the option's subgoal in place of the
+    desired goal, as a lower level does, and the share of options that ended within the subgoal threshold is
+    reported too."""
     observation, _ = env.reset(seed=episode_seed)
-    states = []
-    done, info = False, dict[str, Any]()
+    space = env.unwrapped.subgoal_space if subgoals is not None else None  # type: ignore[attr-defined]
+    states, reached = [], []
+    done, info, step = False, dict[str, Any](), 0
     while not done:
-        observation, _, terminated, truncated, info = env.step(clone.act(observation))
+        subgoal = None if subgoals is None else subgoals[min(step // option_steps, len(subgoals) - 1)]
+        seen = observation if subgoal is None else {**observation, "desired_goal": subgoal}
+        observation, _, terminated, truncated, info = env.step(clone.act(seen))
         states.append(observation["observation"])
         done = terminated or truncated
+        step += 1
+        if space is not None and (step % option_steps == 0 or done):
+            reached.append(float(space.distance(space.project(observation["achieved_goal"]), subgoal) <= space.threshold))
     departure = first_departure(np.array(states), demonstration.next_observations["observation"], tolerance)
     return {
         "success": float(info.get("is_success", 0.0)),
         "departure_step": "" if departure is None else departure,
         "episode_steps": len(states),
+        "options_reached": f"{np.mean(reached):.4f}" if reached else "",
     }
 
 
@@ -127,24 +191,38 @@ def clone_rows(
     tolerance: float,
     demo_path: Path | None = None,
     n_demos: int = 1,
+    option_steps: int | None = None,
 ) -> list[dict]:
     """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
-    and run it for episode seeds ``0 .. episodes - 1``."""
+    and run it for episode seeds ``0 .. episodes - 1``; with ``option_steps``, clone and drive it as a lower level
+    (subgoal-conditioned, driven by the default demonstration's subgoals every ``option_steps`` steps)."""
     demonstrations = default_demonstrations(env_id) if demo_path is None else load_demonstrations(demo_path)
     demonstrations = demonstrations.first_episodes(n_demos)
     env = gym.make(env_id)
     try:
         demonstrations.check_spaces(env.observation_space, env.action_space)
-        clone = fit_clone(demonstrations, net_arch, fit_steps)
+        subgoals = None
+        if option_steps is None:
+            sample_batch = goal_conditioned_batches(demonstrations, seed=0)
+        else:
+            space = getattr(env.unwrapped, "subgoal_space", None)
+            if space is None:
+                raise ValueError(f"--option-steps: {env_id} defines no subgoal space (env.unwrapped.subgoal_space)")
+            buffer = DemonstrationBuffer(demonstrations, space, demonstrations.actions)
+            sample_batch = subgoal_conditioned_batches(buffer, seed=0)
+            subgoals = oracle_subgoals(env_id, option_steps, space)
+        reference_inputs, _ = sample_batch(10_000)
+        clone = fit_clone(sample_batch, reference_inputs, net_arch, fit_steps)
         return [
             {
                 "env": env_id,
                 "demonstrations": "default" if demo_path is None else demo_path.name,
                 "n_demos": n_demos,
+                "option_steps": "" if option_steps is None else option_steps,
                 "fit_steps": fit_steps,
                 "fit_loss": f"{clone.fit_loss:.2e}",
                 "episode_seed": seed,
-                **run_clone(clone, env, demonstrations.first_episodes(1), seed, tolerance),
+                **run_clone(clone, env, demonstrations.first_episodes(1), seed, tolerance, subgoals, option_steps or 1),
             }
             for seed in range(episodes)
         ]
@@ -163,10 +241,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--n-demos", type=int, nargs="+", default=[1], help="clone the file's first N episodes (one clone per N)"
     )
+    parser.add_argument(
+        "--option-steps",
+        type=int,
+        help="clone as the lower level does (subgoals relabelled from later in each episode) and drive the clone with "
+        "the default demonstration's subgoals every K steps, as oracle_subgoals.py drives a trained lower level",
+    )
     parser.add_argument("--csv", type=Path, help="also write one row per episode here")
     args = parser.parse_args(argv)
-    if args.fit_steps < 1 or args.episodes < 1 or min(args.n_demos) < 1:
-        parser.error("--fit-steps, --episodes and --n-demos must be at least 1")
+    if min(args.fit_steps, args.episodes, *args.n_demos, 1 if args.option_steps is None else args.option_steps) < 1:
+        parser.error("--fit-steps, --episodes, --n-demos and --option-steps must be at least 1")
     if args.demo_path is not None and len(args.envs) != 1:
         parser.error(f"--demo-path holds one task's demonstrations: give one env, not {len(args.envs)}")
     th.set_num_threads(1)
@@ -174,13 +258,25 @@ def main(argv: list[str] | None = None) -> None:
     for env_id in args.envs:
         for n_demos in args.n_demos:
             env_rows = clone_rows(
-                env_id, args.net_arch, args.fit_steps, args.episodes, args.tolerance, args.demo_path, n_demos
+                env_id,
+                args.net_arch,
+                args.fit_steps,
+                args.episodes,
+                args.tolerance,
+                args.demo_path,
+                n_demos,
+                args.option_steps,
             )
             departures = [row["departure_step"] for row in env_rows]
             cloned = "" if args.demo_path is None else f" ({n_demos} of {args.demo_path.name})"
+            reached = (
+                ""
+                if args.option_steps is None
+                else (f", options reached {np.mean([float(row['options_reached']) for row in env_rows]):.2f}")
+            )
             print(
-                f"{env_id}{cloned}: success {np.mean([row['success'] for row in env_rows]):.2f} over {args.episodes} "
-                f"episodes, fit loss {env_rows[0]['fit_loss']}, departure steps {departures} of "
+                f"{env_id}{cloned}: success {np.mean([row['success'] for row in env_rows]):.2f}{reached} over "
+                f"{args.episodes} episodes, fit loss {env_rows[0]['fit_loss']}, departure steps {departures} of "
                 f"{env_rows[0]['episode_steps']}"
             )
             rows += env_rows

@@ -29,6 +29,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
+from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.envs.demos import default_demonstrations
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -38,11 +39,10 @@ from configs import measure_runs, trained_run
 DEMONSTRATION_SEED = 0
 
 
-def oracle_subgoals(env_id: str, option_steps: int, model: HierarchicalAlgorithm) -> np.ndarray:
+def oracle_subgoals(env_id: str, option_steps: int, subgoal_space: SubgoalSpace) -> np.ndarray:
     """The default demonstration's achieved subgoals after steps K, 2K, ... and after its last step, in world units."""
-    assert model.subgoal_space is not None
     demonstration = default_demonstrations(env_id).first_episodes(1)
-    achieved = model.subgoal_space.project(demonstration.next_observations["achieved_goal"])
+    achieved = subgoal_space.project(demonstration.next_observations["achieved_goal"])
     ends = list(range(option_steps - 1, len(achieved), option_steps))
     if ends[-1] != len(achieved) - 1:
         ends.append(len(achieved) - 1)
@@ -99,8 +99,9 @@ def measure(
     model, env = trained_run(run, algo, env_id, seed=DEMONSTRATION_SEED, model_file=model_file)
     if not isinstance(model, HierarchicalAlgorithm):
         raise ValueError(f"{run}: the model is a {type(model).__name__}, not a hierarchical algorithm; it has no subgoals")
+    assert model.subgoal_space is not None
     results = {
-        "oracle": run_episodes(model, env, n_episodes, oracle_subgoals(env_id, model.option_steps, model)),
+        "oracle": run_episodes(model, env, n_episodes, oracle_subgoals(env_id, model.option_steps, model.subgoal_space)),
         "higher_level": run_episodes(model, env, n_episodes, None),
     }
     env.close()
