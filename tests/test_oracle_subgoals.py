@@ -9,10 +9,13 @@ from pathlib import Path
 import numpy as np
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import DIPPER
 from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OBJECT_REST_Z
 from sb3_dipper.envs.demos import default_demonstrations
+from tests.conftest import tiny_model
+from zoo_scripts.configs import trained_run
 from zoo_scripts.oracle_subgoals import oracle_subgoals, run_episodes
 
 SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "oracle_subgoals.py"
@@ -127,3 +130,26 @@ def test_a_run_still_training_is_measured_at_its_checkpoints_and_without_them_re
     with open(tmp_path / "c.csv") as file:
         assert [row["driver"] for row in csv.DictReader(file)] == ["oracle", "higher_level"]
     assert not (run / "oracle_subgoals.json").exists()  # the report is the final model's
+
+
+def test_a_checkpoint_is_measured_with_the_normalisation_statistics_of_its_own_step(tmp_path):
+    # rl-zoo3 keeps one vecnormalize.pkl per run; a checkpoint measured with it would see other statistics than it
+    # trained with. The hierarchical model's own copy (its lower level's normaliser) is what the measurement uses.
+    env_id = "PointMazeFourRooms-v0"
+    run = tmp_path / "dipper" / f"{env_id}_1"
+    (run / env_id).mkdir(parents=True)
+    env = VecNormalize(make_vec_env(f"sb3_dipper:{env_id}", n_envs=1, seed=0), norm_reward=False)  # full episodes
+    model = tiny_model(DIPPER, env)
+    model.learn(100)
+    model.save(run / "rl_model_100_steps.zip")
+    at_checkpoint = env.obs_rms["observation"].mean.copy()
+    model.learn(200, reset_num_timesteps=False)
+    model.save(run / f"{env_id}.zip")
+    env.save(str(run / env_id / "vecnormalize.pkl"))
+    at_the_end = env.obs_rms["observation"].mean.copy()
+    assert not np.allclose(at_checkpoint, at_the_end)
+    _, checkpoint_env = trained_run(run, "dipper", env_id, seed=0, model_file=run / "rl_model_100_steps.zip")
+    np.testing.assert_allclose(checkpoint_env.obs_rms["observation"].mean, at_checkpoint)
+    assert not checkpoint_env.training
+    _, final_env = trained_run(run, "dipper", env_id, seed=0)
+    np.testing.assert_allclose(final_env.obs_rms["observation"].mean, at_the_end)

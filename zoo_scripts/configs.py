@@ -102,14 +102,24 @@ def trained_run(
     run: Path, algo: str, env_id: str, seed: int, n_envs: int = 1, model_file: Path | None = None
 ) -> tuple[BaseAlgorithm, VecEnv]:
     """The model of a zoo run folder (``<run>/<env>.zip``, or ``model_file``, e.g. one of its checkpoints) on a fresh
-    evaluation env, with the run's ``VecNormalize`` statistics (rl-zoo3 keeps the last ones in
-    ``<run>/<env>/vecnormalize.pkl``) frozen where it has them."""
+    evaluation env, with the run's ``VecNormalize`` statistics frozen where it has them.
+
+    rl-zoo3 keeps one set of statistics per run (``<run>/<env>/vecnormalize.pkl``, written with the best and the
+    final model), none per checkpoint. A hierarchical model carries its own copy of the statistics it trained with
+    (its lower level's normaliser, refreshed at every step), so a checkpoint is measured with the statistics of its
+    own step, not with those of a later or earlier save."""
     env = make_env(env_id, {**load_entry(algo, env_id), "normalize": False}, seed=seed, n_envs=n_envs)
     statistics = run / env_id / "vecnormalize.pkl"
     if statistics.exists():
         env = VecNormalize.load(str(statistics), env)
         env.training, env.norm_reward = False, False
-    return ALGORITHMS[algo].load(model_file or run / f"{env_id}.zip", env=env), env
+    model = ALGORITHMS[algo].load(model_file or run / f"{env_id}.zip", env=env)
+    own = getattr(model, "low_normalizer", None)
+    if isinstance(env, VecNormalize) and own is not None:
+        saved = {**own.goal_statistics, **{key: own.statistics[key] for key in ("observation",) if key in own.statistics}}
+        for key, (mean, var) in saved.items():
+            env.obs_rms[key].mean, env.obs_rms[key].var = mean.copy(), var.copy()  # type: ignore[index]
+    return model, env
 
 
 def checkpoints(run: Path) -> list[Path]:
