@@ -73,8 +73,33 @@ def test_the_command_writes_one_csv_row_per_episode(tmp_path, capsys):
         ("FetchPushFixed-v0", "0", "50"),
         ("FetchPushFixed-v0", "1", "50"),
     ]
-    assert "FetchPushFixed-v0: success 0.00 over 2 episodes" in capsys.readouterr().out
+    assert "FetchPushFixed-v0, fit seed 0: success 0.00 over 2 episodes" in capsys.readouterr().out
     assert not list(tmp_path.glob("*.tmp*"))
+
+
+def test_each_fit_seed_is_a_clone_of_its_own(tmp_path, capsys):
+    out = tmp_path / "clone.csv"
+    main(
+        [
+            "FetchPushFixed-v0",
+            "--net-arch",
+            "16",
+            "--fit-steps",
+            "5",
+            "--episodes",
+            "1",
+            "--fit-seeds",
+            "0",
+            "1",
+            "0",
+            "--csv",
+            str(out),
+        ]
+    )
+    rows = list(csv.DictReader(out.open()))
+    assert [row["fit_seed"] for row in rows] == ["0", "1", "0"]
+    assert rows[0]["fit_loss"] == rows[2]["fit_loss"] != rows[1]["fit_loss"]  # the same seed, the same clone
+    assert "fit seed 1: success" in capsys.readouterr().out
 
 
 def test_the_command_clones_the_first_episodes_of_a_demonstration_file(tmp_path, capsys):
@@ -85,7 +110,7 @@ def test_the_command_clones_the_first_episodes_of_a_demonstration_file(tmp_path,
     main(["FetchPushFixed-v0", *args, "--n-demos", "1", "2"])
     rows = list(csv.DictReader(out.open()))
     assert [(row["demonstrations"], row["n_demos"]) for row in rows] == [("dart.npz", "1"), ("dart.npz", "2")]
-    assert "FetchPushFixed-v0 (2 of dart.npz): success" in capsys.readouterr().out
+    assert "FetchPushFixed-v0 (2 of dart.npz), fit seed 0: success" in capsys.readouterr().out
     with pytest.raises(ValueError, match="n_demos between 1 and 3"):
         main(["FetchPushFixed-v0", *args, "--n-demos", "4"])
     with pytest.raises(ValueError, match="the env's has"):
@@ -105,7 +130,7 @@ def test_the_command_clones_as_a_lower_level_with_option_steps(tmp_path, capsys,
     main(["FetchPushFixed-v0", *args])
     (row,) = list(csv.DictReader(out.open()))
     assert row["option_steps"] == "7" and 0.0 <= float(row["options_reached"]) <= 1.0
-    assert "FetchPushFixed-v0: success 0.00, options reached" in capsys.readouterr().out
+    assert "FetchPushFixed-v0, fit seed 0: success 0.00, options reached" in capsys.readouterr().out
 
     class WithoutSubgoals(gym.Wrapper):
         @property

@@ -17,7 +17,8 @@ errors take the clone off the demonstrated path. Episode seed 0 starts where the
     sb3-dipper-demos --env FrankaKitchenMicrowaveBurner-v0 --n-episodes 20 --action-noise 0.1 --out kitchen-dart.npz
     python zoo_scripts/clone_demonstration.py FrankaKitchenMicrowaveBurner-v0 --demo-path kitchen-dart.npz --n-demos 1 5 20
 
-The departure step is then measured from the file's first episode.
+The departure step is then measured from the file's first episode. A clone's success can hang on its initialisation
+(on the kitchen, 1.00, 0.50 and 0.12 for three seeds of the same fit): ``--fit-seeds 0 1 2`` fits one clone per seed.
 
 ``--option-steps K`` clones as a lower level learns from the demonstrations: each step under a subgoal the algorithms'
 own :class:`~sb3_dipper.common.imitation.DemonstrationBuffer` samples (a later achieved subgoal of its episode, or the
@@ -63,6 +64,7 @@ CSV_FIELDS = (
     "n_demos",
     "option_steps",
     "fit_steps",
+    "fit_seed",
     "fit_loss",
     "episode_seed",
     "success",
@@ -192,10 +194,12 @@ def clone_rows(
     demo_path: Path | None = None,
     n_demos: int = 1,
     option_steps: int | None = None,
+    fit_seed: int = 0,
 ) -> list[dict]:
     """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
     and run it for episode seeds ``0 .. episodes - 1``; with ``option_steps``, clone and drive it as a lower level
-    (subgoal-conditioned, driven by the default demonstration's subgoals every ``option_steps`` steps)."""
+    (subgoal-conditioned, driven by the default demonstration's subgoals every ``option_steps`` steps). ``fit_seed``
+    seeds the network's initialisation and the batches."""
     demonstrations = default_demonstrations(env_id) if demo_path is None else load_demonstrations(demo_path)
     demonstrations = demonstrations.first_episodes(n_demos)
     env = gym.make(env_id)
@@ -203,16 +207,16 @@ def clone_rows(
         demonstrations.check_spaces(env.observation_space, env.action_space)
         subgoals = None
         if option_steps is None:
-            sample_batch = goal_conditioned_batches(demonstrations, seed=0)
+            sample_batch = goal_conditioned_batches(demonstrations, seed=fit_seed)
         else:
             space = getattr(env.unwrapped, "subgoal_space", None)
             if space is None:
                 raise ValueError(f"--option-steps: {env_id} defines no subgoal space (env.unwrapped.subgoal_space)")
             buffer = DemonstrationBuffer(demonstrations, space, demonstrations.actions)
-            sample_batch = subgoal_conditioned_batches(buffer, seed=0)
+            sample_batch = subgoal_conditioned_batches(buffer, seed=fit_seed)
             subgoals = oracle_subgoals(env_id, option_steps, space)
         reference_inputs, _ = sample_batch(10_000)
-        clone = fit_clone(sample_batch, reference_inputs, net_arch, fit_steps)
+        clone = fit_clone(sample_batch, reference_inputs, net_arch, fit_steps, seed=fit_seed)
         return [
             {
                 "env": env_id,
@@ -220,6 +224,7 @@ def clone_rows(
                 "n_demos": n_demos,
                 "option_steps": "" if option_steps is None else option_steps,
                 "fit_steps": fit_steps,
+                "fit_seed": fit_seed,
                 "fit_loss": f"{clone.fit_loss:.2e}",
                 "episode_seed": seed,
                 **run_clone(clone, env, demonstrations.first_episodes(1), seed, tolerance, subgoals, option_steps or 1),
@@ -228,6 +233,20 @@ def clone_rows(
         ]
     finally:
         env.close()
+
+
+def summary(env_id: str, env_rows: list[dict], args: argparse.Namespace) -> str:
+    """One console line for the episodes of one clone."""
+    cloned = "" if args.demo_path is None else f" ({env_rows[0]['n_demos']} of {args.demo_path.name})"
+    reached = ""
+    if args.option_steps is not None:
+        reached = f", options reached {np.mean([float(row['options_reached']) for row in env_rows]):.2f}"
+    return (
+        f"{env_id}{cloned}, fit seed {env_rows[0]['fit_seed']}: success "
+        f"{np.mean([row['success'] for row in env_rows]):.2f}{reached} over {args.episodes} episodes, fit loss "
+        f"{env_rows[0]['fit_loss']}, departure steps {[row['departure_step'] for row in env_rows]} of "
+        f"{env_rows[0]['episode_steps']}"
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -247,6 +266,9 @@ def main(argv: list[str] | None = None) -> None:
         help="clone as the lower level does (subgoals relabelled from later in each episode) and drive the clone with "
         "the default demonstration's subgoals every K steps, as oracle_subgoals.py drives a trained lower level",
     )
+    parser.add_argument(
+        "--fit-seeds", type=int, nargs="+", default=[0], help="one clone per seed (initialisation and batches)"
+    )
     parser.add_argument("--csv", type=Path, help="also write one row per episode here")
     args = parser.parse_args(argv)
     if min(args.fit_steps, args.episodes, *args.n_demos, 1 if args.option_steps is None else args.option_steps) < 1:
@@ -257,29 +279,20 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for env_id in args.envs:
         for n_demos in args.n_demos:
-            env_rows = clone_rows(
-                env_id,
-                args.net_arch,
-                args.fit_steps,
-                args.episodes,
-                args.tolerance,
-                args.demo_path,
-                n_demos,
-                args.option_steps,
-            )
-            departures = [row["departure_step"] for row in env_rows]
-            cloned = "" if args.demo_path is None else f" ({n_demos} of {args.demo_path.name})"
-            reached = (
-                ""
-                if args.option_steps is None
-                else (f", options reached {np.mean([float(row['options_reached']) for row in env_rows]):.2f}")
-            )
-            print(
-                f"{env_id}{cloned}: success {np.mean([row['success'] for row in env_rows]):.2f}{reached} over "
-                f"{args.episodes} episodes, fit loss {env_rows[0]['fit_loss']}, departure steps {departures} of "
-                f"{env_rows[0]['episode_steps']}"
-            )
-            rows += env_rows
+            for fit_seed in args.fit_seeds:
+                env_rows = clone_rows(
+                    env_id,
+                    args.net_arch,
+                    args.fit_steps,
+                    args.episodes,
+                    args.tolerance,
+                    args.demo_path,
+                    n_demos,
+                    args.option_steps,
+                    fit_seed,
+                )
+                print(summary(env_id, env_rows, args))
+                rows += env_rows
     if args.csv is not None:
         text = io.StringIO()
         writer = csv.DictWriter(text, fieldnames=CSV_FIELDS)
