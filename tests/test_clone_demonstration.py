@@ -36,9 +36,9 @@ def test_a_clone_of_the_fixed_pick_and_place_demonstration_solves_it_closed_loop
     env = gym.make("FetchPickAndPlaceFixed-v0")
     sample_batch = goal_conditioned_batches(demonstration, seed=0)
     reference, _ = sample_batch(1000)
-    untrained = run_clone(fit_clone(sample_batch, reference, [64, 64], steps=0), env, demonstration, 0, 0.05)
+    untrained = run_clone(fit_clone(sample_batch, reference, 4, [64, 64], steps=0), env, demonstration, 0, 0.05)
     assert untrained["success"] == 0.0 and untrained["departure_step"] != ""
-    clone = fit_clone(sample_batch, reference, [64, 64], steps=1500)
+    clone = fit_clone(sample_batch, reference, 4, [64, 64], steps=1500)
     assert clone.fit_loss < 1e-3
     episode = run_clone(clone, env, demonstration, 0, 0.05)
     env.close()
@@ -56,10 +56,10 @@ def test_a_clone_trained_as_a_lower_level_follows_the_demonstrations_subgoals():
     assert inputs.shape == (4, demonstration.observations["observation"].shape[1] + space.dim) and actions.shape == (4, 4)
     reference, _ = sample_batch(1000)
     subgoals = oracle_subgoals("FetchPickAndPlaceFixed-v0", 7, space)
-    untrained = fit_clone(sample_batch, reference, [64, 64], steps=0)
+    untrained = fit_clone(sample_batch, reference, 4, [64, 64], steps=0)
     driven = run_clone(untrained, env, demonstration, 0, 0.05, subgoals, option_steps=7)
     assert driven["success"] == 0.0 and float(driven["options_reached"]) < 0.5
-    trained = fit_clone(sample_batch, reference, [64, 64], steps=1500)
+    trained = fit_clone(sample_batch, reference, 4, [64, 64], steps=1500)
     driven = run_clone(trained, env, demonstration, 0, 0.05, subgoals, option_steps=7)
     env.close()
     assert driven["success"] == 1.0 and float(driven["options_reached"]) == 1.0  # all 8 options, the last at step 50

@@ -92,19 +92,19 @@ class Clone:
 def fit_clone(
     sample_batch: Callable[[int], tuple[np.ndarray, np.ndarray]],
     reference_inputs: np.ndarray,
+    n_actions: int,
     net_arch: list[int],
     steps: int,
     batch_size: int = 128,
     seed: int = 0,
 ) -> Clone:
     """Fit a :class:`Clone` by ``steps`` Adam steps (learning rate 1e-3) on the mean squared action error of batches
-    ``(inputs, actions) = sample_batch(batch_size)``, inputs standardised by ``reference_inputs``. Actions are assumed
-    in ``[-1, 1]`` (the tanh output), as in every task here."""
+    ``(inputs, actions) = sample_batch(batch_size)``, inputs standardised by ``reference_inputs``, ``n_actions`` outputs.
+    Actions are assumed in ``[-1, 1]`` (the tanh output), as in every task here."""
     th.manual_seed(seed)
     # The floor keeps inputs that never vary in the demonstration (a fixed goal) from being scaled up without bound.
     mean, std = reference_inputs.mean(0), reference_inputs.std(0) + 1e-2
-    inputs, targets = sample_batch(1)
-    network = th.nn.Sequential(*create_mlp(inputs.shape[1], targets.shape[1], net_arch, squash_output=True))
+    network = th.nn.Sequential(*create_mlp(reference_inputs.shape[1], n_actions, net_arch, squash_output=True))
     optimizer = th.optim.Adam(network.parameters(), lr=1e-3)
     loss = th.zeros(())
     for _ in range(steps):
@@ -208,6 +208,8 @@ def clone_rows(
         subgoals = None
         if option_steps is None:
             sample_batch = goal_conditioned_batches(demonstrations, seed=fit_seed)
+            observations = demonstrations.observations
+            reference_inputs = np.concatenate([observations["observation"], observations["desired_goal"]], 1)
         else:
             space = getattr(env.unwrapped, "subgoal_space", None)
             if space is None:
@@ -215,8 +217,9 @@ def clone_rows(
             buffer = DemonstrationBuffer(demonstrations, space, demonstrations.actions)
             sample_batch = subgoal_conditioned_batches(buffer, seed=fit_seed)
             subgoals = oracle_subgoals(env_id, option_steps, space)
-        reference_inputs, _ = sample_batch(10_000)
-        clone = fit_clone(sample_batch, reference_inputs, net_arch, fit_steps, seed=fit_seed)
+            reference_inputs, _ = sample_batch(10_000)  # the relabelled subgoals' spread, not the stored goals'
+        n_actions = demonstrations.actions.shape[1]
+        clone = fit_clone(sample_batch, reference_inputs, n_actions, net_arch, fit_steps, seed=fit_seed)
         return [
             {
                 "env": env_id,
