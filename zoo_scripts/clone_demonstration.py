@@ -18,7 +18,8 @@ errors take the clone off the demonstrated path. Episode seed 0 starts where the
     python zoo_scripts/clone_demonstration.py FrankaKitchenMicrowaveBurner-v0 --demo-path kitchen-dart.npz --n-demos 1 5 20
 
 The departure step is then measured from the file's first episode. A clone's success can hang on its initialisation
-(on the kitchen, 1.00, 0.50 and 0.12 for three seeds of the same fit): ``--fit-seeds 0 1 2`` fits one clone per seed.
+and batch order (the kitchen's, BENCHMARKS.md section 22): ``--fit-seeds 0 1 2`` fits one clone per
+seed.
 
 ``--option-steps K`` clones as a lower level learns from the demonstrations: each step under a subgoal the algorithms'
 own :class:`~sb3_dipper.common.imitation.DemonstrationBuffer` samples (a later achieved subgoal of its episode, or the
