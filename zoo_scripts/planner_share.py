@@ -14,8 +14,8 @@ preference-trained policy alone) and with the env's goal as every subgoal (the l
 adds is measured against it). For each it prints the episode success and the share of higher-level decisions the
 planner made, and writes them as ``planner_share.json`` in the zoo run folder; with ``--csv``, also one CSV row per run,
 model and case. With ``--checkpoints`` it also measures every checkpoint the run kept (``rl_model_<steps>_steps.zip``,
-from ``benchmark.py learning --save-freq``), so the four cases can be followed over training; a run with
-``VecNormalize`` is evaluated with its last statistics at every checkpoint.
+from ``benchmark.py learning --save-freq``), so the four cases can be followed over training; each checkpoint of a run
+with ``VecNormalize`` is evaluated with the observation statistics it trained with (the model's own copy).
 
 A DIPPER without the planner (``planning`` ``"off"`` or ``"waypoint"``: the paper's DIPPER, DIPPER-No-V) gets the three
 cases that do not need it: as trained (its policy alone), with the higher policy untrained and with the env's goal as
