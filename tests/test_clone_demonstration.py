@@ -13,6 +13,7 @@ from zoo_scripts.clone_demonstration import (
     first_departure,
     fit_clone,
     goal_conditioned_batches,
+    goal_conditioned_inputs,
     main,
     run_clone,
     subgoal_conditioned_batches,
@@ -34,8 +35,8 @@ def test_a_clone_of_the_fixed_pick_and_place_demonstration_solves_it_closed_loop
     # enough there (BENCHMARKS.md, "what one demonstration teaches"). An unfitted network fails.
     demonstration = default_demonstrations("FetchPickAndPlaceFixed-v0").first_episodes(1)
     env = gym.make("FetchPickAndPlaceFixed-v0")
-    sample_batch = goal_conditioned_batches(demonstration, seed=0)
-    reference, _ = sample_batch(1000)
+    reference = goal_conditioned_inputs(demonstration)
+    sample_batch = goal_conditioned_batches(reference, demonstration.actions, seed=0)
     untrained = run_clone(fit_clone(sample_batch, reference, 4, [64, 64], steps=0), env, demonstration, 0, 0.05)
     assert untrained["success"] == 0.0 and untrained["departure_step"] != ""
     clone = fit_clone(sample_batch, reference, 4, [64, 64], steps=1500)

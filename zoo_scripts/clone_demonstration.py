@@ -57,7 +57,7 @@ from sb3_dipper.common.imitation import DemonstrationBuffer
 from sb3_dipper.envs.demos import default_demonstrations
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from oracle_subgoals import oracle_subgoals
+from oracle_subgoals import option_subgoal, oracle_subgoals
 
 CSV_FIELDS = (
     "env",
@@ -118,14 +118,21 @@ def fit_clone(
     return Clone(network, mean, std, loss.item())
 
 
-def goal_conditioned_batches(demonstrations: Demonstrations, seed: int) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
-    """Demonstration steps with their own desired goal: what a flat goal-conditioned policy clones."""
+def goal_conditioned_inputs(demonstrations: Demonstrations) -> np.ndarray:
+    """Every demonstration step's observation and its own desired goal, side by side."""
+    return np.concatenate([demonstrations.observations["observation"], demonstrations.observations["desired_goal"]], 1)
+
+
+def goal_conditioned_batches(
+    inputs: np.ndarray, actions: np.ndarray, seed: int
+) -> Callable[[int], tuple[np.ndarray, np.ndarray]]:
+    """Rows of ``inputs`` (:func:`goal_conditioned_inputs`) and their ``actions``: what a flat goal-conditioned policy
+    clones."""
     generator = np.random.default_rng(seed)
-    inputs = np.concatenate([demonstrations.observations["observation"], demonstrations.observations["desired_goal"]], 1)
 
     def sample_batch(batch_size: int) -> tuple[np.ndarray, np.ndarray]:
         rows = generator.integers(0, len(inputs), batch_size)
-        return inputs[rows], demonstrations.actions[rows]
+        return inputs[rows], actions[rows]
 
     return sample_batch
 
@@ -169,7 +176,7 @@ def run_clone(
     states, reached = [], []
     done, info, step = False, dict[str, Any](), 0
     while not done:
-        subgoal = None if subgoals is None else subgoals[min(step // option_steps, len(subgoals) - 1)]
+        subgoal = None if subgoals is None else option_subgoal(subgoals, step, option_steps)
         seen = observation if subgoal is None else {**observation, "desired_goal": subgoal}
         observation, _, terminated, truncated, info = env.step(clone.act(seen))
         states.append(observation["observation"])
@@ -208,9 +215,8 @@ def clone_rows(
         demonstrations.check_spaces(env.observation_space, env.action_space)
         subgoals = None
         if option_steps is None:
-            sample_batch = goal_conditioned_batches(demonstrations, seed=fit_seed)
-            observations = demonstrations.observations
-            reference_inputs = np.concatenate([observations["observation"], observations["desired_goal"]], 1)
+            reference_inputs = goal_conditioned_inputs(demonstrations)
+            sample_batch = goal_conditioned_batches(reference_inputs, demonstrations.actions, seed=fit_seed)
         else:
             space = getattr(env.unwrapped, "subgoal_space", None)
             if space is None:

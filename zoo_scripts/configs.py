@@ -116,9 +116,7 @@ def trained_run(
     model = ALGORITHMS[algo].load(model_file or run / f"{env_id}.zip", env=env)
     own = getattr(model, "low_normalizer", None)
     if isinstance(env, VecNormalize) and own is not None:
-        saved = {**own.goal_statistics, **{key: own.statistics[key] for key in ("observation",) if key in own.statistics}}
-        for key, (mean, var) in saved.items():
-            env.obs_rms[key].mean, env.obs_rms[key].var = mean.copy(), var.copy()  # type: ignore[index]
+        own.restore(env)
     return model, env
 
 
@@ -150,7 +148,7 @@ def measure_runs(
     rows = [",".join(("run", "steps", case_column, *metrics))]
     for run in args.runs:
         env_id = args.env or run.name.rsplit("_", 1)[0]
-        models: list[Path | None] = [*(checkpoints(run) if args.checkpoints else [])]
+        models: list[Path | None] = list(checkpoints(run)) if args.checkpoints else []
         # A run still training (or paused) has checkpoints but no final model yet: measure what it has.
         if (run / f"{env_id}.zip").exists():
             models.append(None)

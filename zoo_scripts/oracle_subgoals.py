@@ -49,6 +49,11 @@ def oracle_subgoals(env_id: str, option_steps: int, subgoal_space: SubgoalSpace)
     return achieved[ends].astype(np.float32)
 
 
+def option_subgoal(subgoals: np.ndarray, step: int, option_steps: int) -> np.ndarray:
+    """The subgoal of the option running at primitive ``step``: one row per option, the last kept to the end."""
+    return subgoals[min(step // option_steps, len(subgoals) - 1)]
+
+
 def run_episodes(model: HierarchicalAlgorithm, env: VecEnv, n_episodes: int, subgoals: np.ndarray | None) -> dict[str, float]:
     """Deterministic episodes from the demonstration's start; ``subgoals`` (one row per option) replaces the higher
     level when given."""
@@ -68,7 +73,7 @@ def run_episodes(model: HierarchicalAlgorithm, env: VecEnv, n_episodes: int, sub
         while not done.all():
             if step % option_steps == 0:
                 if subgoals is not None:
-                    current = np.repeat(subgoals[min(step // option_steps, len(subgoals) - 1)][None], n_envs, axis=0)
+                    current = np.repeat(option_subgoal(subgoals, step, option_steps)[None], n_envs, axis=0)
                     state = (current.copy(), np.full(n_envs, option_steps, dtype=np.int64))
             actions, new_state = model.predict(obs, state=state, deterministic=True)  # type: ignore[arg-type]
             state = new_state  # type: ignore[assignment]

@@ -123,6 +123,16 @@ class SubgoalNormalizer:
                 if key != "desired_goal":
                     self.statistics[key] = (mean, var)
 
+    def restore(self, vec_normalize: VecNormalize) -> None:
+        """Set the base env's ``VecNormalize`` statistics to this copy (the inverse of :meth:`refresh`): a saved model
+        evaluated with the statistics it trained with, not with those of a later save."""
+        saved = dict(self.goal_statistics)
+        if "observation" in self.statistics:
+            saved["observation"] = self.statistics["observation"]
+        for key, (mean, var) in saved.items():
+            rms = vec_normalize.obs_rms[key]  # type: ignore[index]
+            rms.mean, rms.var = mean.copy(), var.copy()
+
     def _normalize(self, value: np.ndarray, base_key: str) -> np.ndarray:
         if base_key not in self.statistics:
             return value
