@@ -27,11 +27,14 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_dipper.common.files import read_npz, save_npz
 
 OBSERVATION_KEYS = ("observation", "achieved_goal", "desired_goal")
+# Added to the demonstrations' std: an input the demonstration never varies (a fixed goal, an untouched object) is
+# scaled by 100 instead of without bound.
+DEMO_STD_FLOOR = 1e-2
 
 
 class ScriptedExpert(Protocol):
@@ -227,6 +230,33 @@ def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
             f"{sorted(_DEFAULT_DEMONSTRATIONS)}); pass a demonstration file (sb3-dipper-demos) instead"
         )
     return _DEFAULT_DEMONSTRATIONS[spec.id]()
+
+
+def normalize_like_demonstrations(
+    vec_normalize: VecNormalize, demonstrations: Demonstrations, std_floor: float = DEMO_STD_FLOOR
+) -> None:
+    """Fix ``vec_normalize``'s observation statistics to the states the demonstrations act in: every normalised key is
+    scaled by the demonstrations' mean and ``std + std_floor``, and the statistics stop following the visited states
+    (``training = False``, SB3's way to freeze them).
+
+    Running statistics of the visited states scale an object's joint by the std the exploring agent gives it: on the
+    kitchen, where exploration hardly moves the microwave door or the burner knob, a demonstration's states are then
+    clipped and the lower level cannot see the task's progress (measured in BENCHMARKS.md, "the paper's tasks on a
+    CPU", section 23).
+
+    :param vec_normalize: the training env's ``VecNormalize`` (with ``norm_obs=True``)
+    :param demonstrations: the episodes whose states define the scale
+    :param std_floor: added to each input's std
+    """
+    for key in vec_normalize.norm_obs_keys or []:
+        rms = vec_normalize.obs_rms[key]  # type: ignore[index]
+        states = demonstrations.observations[key].reshape(len(demonstrations), -1).astype(np.float64)
+        std = states.std(axis=0) + std_floor
+        # VecNormalize divides by sqrt(var + epsilon): this var makes that divisor exactly std.
+        rms.mean = states.mean(axis=0).reshape(rms.mean.shape)
+        rms.var = np.maximum(std**2 - vec_normalize.epsilon, 0.0).reshape(rms.var.shape)
+        rms.count = float(len(demonstrations))
+    vec_normalize.training = False
 
 
 def load_demonstrations(path: str | Path, n_episodes: int | None = None) -> Demonstrations:

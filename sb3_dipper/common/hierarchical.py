@@ -34,7 +34,7 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
-from sb3_dipper.common.demonstrations import demonstrations_for
+from sb3_dipper.common.demonstrations import Demonstrations, demonstrations_for, normalize_like_demonstrations
 from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical_policy import (
     ActingLowLevel,
@@ -104,6 +104,10 @@ class HierarchicalAlgorithm(CheckedLoading):
     :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
     :param q_filter: clone only demo actions the lower critic values above the policy's
+    :param normalize_from_demos: scale observations by the demonstrations' states (their mean and std + 0.01), fixed,
+        instead of the ``VecNormalize`` running statistics of the visited states (beyond the paper; needs ``demo_path``
+        and an env wrapped in ``VecNormalize(norm_obs=True)``; see
+        :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
     :param max_episode_steps: base-env episode length (default: read from the env's ``TimeLimit``)
     :param policy_kwargs: keyword arguments of the higher-level policy
     :param stats_window_size: window of the rollout statistics
@@ -121,6 +125,8 @@ class HierarchicalAlgorithm(CheckedLoading):
     # The lower SAC's update count, saved with the model because the lower SAC is rebuilt on load: its logged count and
     # DIPPER's value-snapshot schedule resume where they were.
     _lower_n_updates: int = 0
+    # Models saved before this setting existed load with its default.
+    normalize_from_demos: bool = False
 
     def __init__(
         self,
@@ -148,6 +154,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
         q_filter: bool = True,
+        normalize_from_demos: bool = False,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -181,6 +188,11 @@ class HierarchicalAlgorithm(CheckedLoading):
         demo_share = as_float("demo_share", demo_share, 0.0, 1.0)
         bc_coef = as_float("bc_coef", bc_coef, 0.0, reason="it weighs a loss")
         rl_coef = as_float("rl_coef", rl_coef, 0.0, reason="it weighs a loss")
+        if normalize_from_demos and demo_path is None:
+            raise ValueError(
+                "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
+                "(an npz file, a Minari directory or 'auto') or set normalize_from_demos=False"
+            )
         super().__init__(
             policy,
             env,
@@ -215,6 +227,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.bc_coef = bc_coef
         self.rl_coef = rl_coef
         self.q_filter = q_filter
+        self.normalize_from_demos = normalize_from_demos
         self.max_episode_steps = max_episode_steps
         self.low_normalizer: SubgoalNormalizer | None = None
         self._low_steps_since_train = 0
@@ -229,10 +242,13 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.subgoal_space = resolve_subgoal_space(self.env, self.subgoal_space)
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
         assert self.subgoal_space is not None, "a saved model always carries its subgoal space"
+        demonstrations = self._load_demonstrations() if self.demo_path is not None and self.env is not None else None
+        if demonstrations is not None and self.normalize_from_demos:
+            self._normalize_like(demonstrations)
         if self._vec_normalize_env is not None and self.low_normalizer is None:
             self.low_normalizer = SubgoalNormalizer(self.subgoal_space)
             self.low_normalizer.refresh(self._vec_normalize_env)
-        self._setup_low_level()
+        self._setup_low_level(demonstrations)
         self._setup_high_level()
         self.option_env = None
         if self.env is not None:
@@ -257,7 +273,21 @@ class HierarchicalAlgorithm(CheckedLoading):
         assert self.max_episode_steps is not None
         return math.ceil(self.max_episode_steps / self.option_steps)
 
-    def _setup_low_level(self) -> None:
+    def _normalize_like(self, demonstrations: Demonstrations) -> None:
+        """``normalize_from_demos``: fix the env's ``VecNormalize`` statistics to the demonstrations' states."""
+        vec_normalize = self._vec_normalize_env
+        if vec_normalize is None or not vec_normalize.norm_obs:
+            raise ValueError(
+                "normalize_from_demos=True sets the observation statistics of the env's VecNormalize, but the env is "
+                "not wrapped in VecNormalize(norm_obs=True): wrap it (the zoo's normalize: true) or set "
+                "normalize_from_demos=False"
+            )
+        normalize_like_demonstrations(vec_normalize, demonstrations)
+        if self.low_normalizer is not None:
+            self.low_normalizer.refresh(vec_normalize)
+
+    def _setup_low_level(self, demonstrations: Demonstrations | None = None) -> None:
+        """The lower SAC, cloning ``demonstrations`` (the first ``n_demos`` of ``demo_path``) when given."""
         assert self.subgoal_space is not None
         low_env = SubgoalVecEnv(
             low_level_observation_space(self.observation_space, self.subgoal_space),  # type: ignore[arg-type]
@@ -289,18 +319,22 @@ class HierarchicalAlgorithm(CheckedLoading):
             **self.low_level_kwargs,
         )
         self.lower._n_updates = self._lower_n_updates
-        if self.demo_path is not None and self.env is not None:
-            self.lower.demonstrations = self._load_demonstrations()
+        if demonstrations is not None:
+            self.lower.demonstrations = self._demonstration_buffer(demonstrations)
         self.lower._vec_normalize_env = self.low_normalizer  # type: ignore[assignment]
         self.low_level = SACLowLevel(self.lower, self.low_normalizer)
 
-    def _load_demonstrations(self) -> DemonstrationBuffer:
-        assert self.env is not None and self.subgoal_space is not None and self.demo_path is not None
+    def _load_demonstrations(self) -> Demonstrations:
+        """The first ``n_demos`` episodes of ``demo_path``, checked against the env's spaces."""
+        assert self.env is not None and self.demo_path is not None
         demonstrations = demonstrations_for(self.demo_path, self.env)
         # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
         demonstrations = demonstrations.first_episodes(self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)
-        assert isinstance(self.action_space, spaces.Box)
+        return demonstrations
+
+    def _demonstration_buffer(self, demonstrations: Demonstrations) -> DemonstrationBuffer:
+        assert self.subgoal_space is not None and isinstance(self.action_space, spaces.Box)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
         scaled_actions = self.lower.policy.scale_action(actions)
         return DemonstrationBuffer(demonstrations, self.subgoal_space, scaled_actions)
@@ -573,6 +607,8 @@ class HierarchicalAlgorithm(CheckedLoading):
             self._rebuild_keeping_parameters()
         else:
             assert self.env is not None and self.subgoal_space is not None
+            if self.normalize_from_demos:
+                self._normalize_like(self._load_demonstrations())
             self.option_env = OptionVecEnv(
                 self.env, self.subgoal_space, self.option_steps, self.option_env.low_level, sink=self.option_env.sink
             )

@@ -253,6 +253,9 @@ class HAC(HIER):
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
     :param q_filter: clone only demo actions the lower critic values above the policy's
+    :param normalize_from_demos: scale observations by the demonstrations' states, fixed, instead of the
+        ``VecNormalize`` running statistics (beyond the paper; needs ``demo_path`` and ``VecNormalize``; see
+        :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
     :param max_episode_steps: base episode length (default: the env's time limit)
     :param policy_kwargs: higher SAC ``policy_kwargs``
     :param stats_window_size: window of rollout statistics
@@ -302,6 +305,7 @@ class HAC(HIER):
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
         q_filter: bool = True,
+        normalize_from_demos: bool = False,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -342,6 +346,7 @@ class HAC(HIER):
             bc_coef=bc_coef,
             rl_coef=rl_coef,
             q_filter=q_filter,
+            normalize_from_demos=normalize_from_demos,
             max_episode_steps=max_episode_steps,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,

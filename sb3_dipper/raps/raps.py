@@ -25,6 +25,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
+from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.low_level import sac_torch_save_params
@@ -175,7 +176,7 @@ class RAPS(HIER):
             self.subgoal_space = primitive_space(self.primitives, target)
         super()._setup_model()
 
-    def _setup_low_level(self) -> None:
+    def _setup_low_level(self, demonstrations: Demonstrations | None = None) -> None:
         assert self.primitives is not None, "a saved model always carries its primitives"
         self.low_level = self.lower = ScriptedLowLevel(self.primitives)
 
