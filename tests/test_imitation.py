@@ -6,14 +6,14 @@ import pytest
 import torch as th
 
 from sb3_dipper import DIPPER, HIER
-from sb3_dipper.common.demonstrations import demonstrations_for, load_demonstrations
+from sb3_dipper.common.demonstrations import demonstrations_for, load_demonstrations, normalize_like_demonstrations
 from sb3_dipper.common import imitation
 from sb3_dipper.common.imitation import DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
 from sb3_dipper.common.low_level import clipped_soft_target
 from sb3_dipper.common.subgoals import SubgoalSpace
-from stable_baselines3.common.vec_env import DummyVecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from sb3_dipper.envs.demos import expert_demonstrations
-from tests.conftest import short_maze, tiny_model
+from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
 
 
 @pytest.fixture(scope="module")
@@ -140,6 +140,46 @@ def test_lower_level_clones_demonstrations(model_class, maze_demos, tmp_path):
     model.learn(200, log_interval=1)
     header = open(tmp_path / "progress.csv").readline().strip().split(",")
     assert {"train/low_bc_loss", "train/low_q_filter_kept"} <= set(header)
+
+
+def test_normalize_like_demonstrations_scales_by_the_demonstrations_states(maze_demos):
+    """Mean and std + 0.01 of the demonstrated states, hand-computed on two states, and frozen."""
+    demonstrations = load_demonstrations(maze_demos).first_episodes(1)
+    observation = demonstrations.observations["observation"]
+    observation[:] = 0.0
+    observation[: len(observation) // 2, 0] = 2.0  # first input: half 2, half 0 -> mean 1, std 1
+    env = VecNormalize(short_maze(), norm_reward=False)
+    normalize_like_demonstrations(env, demonstrations)
+    assert not env.training
+    scaled = env.normalize_obs({key: value[:1] for key, value in demonstrations.observations.items()})["observation"]
+    np.testing.assert_allclose(scaled[0], [1 / 1.01, 0.0, 0.0, 0.0], rtol=1e-6)
+    env.reset()
+    env.step(np.zeros((1, 2)))
+    np.testing.assert_allclose(env.obs_rms["observation"].mean, [1.0, 0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, maze_demos, tmp_path):
+    """Through training, into both levels' inputs, and again for the env a saved model is loaded with."""
+    demonstrations = load_demonstrations(maze_demos).first_episodes(2)
+    expected_mean = demonstrations.observations["observation"].astype(np.float64).mean(0)
+    env = VecNormalize(short_maze(), norm_reward=False)
+    model = tiny_model(model_class, env, demo_path=str(maze_demos), n_demos=2, normalize_from_demos=True)
+    model.learn(100)
+    np.testing.assert_allclose(env.obs_rms["observation"].mean, expected_mean)
+    np.testing.assert_allclose(model.low_normalizer.statistics["observation"][0], expected_mean)
+    model.save(tmp_path / "model.zip")
+    fresh = VecNormalize(short_maze(seed=3), norm_reward=False)
+    loaded = model_class.load(tmp_path / "model.zip", env=fresh)
+    np.testing.assert_allclose(fresh.obs_rms["observation"].mean, expected_mean)
+    assert not fresh.training and loaded.normalize_from_demos
+
+
+def test_normalize_from_demos_needs_demonstrations_and_vec_normalize(maze_demos, maze_env):
+    with pytest.raises(ValueError, match="normalize_from_demos=True .* pass demo_path"):
+        tiny_model(DIPPER, VecNormalize(short_maze()), normalize_from_demos=True)
+    with pytest.raises(ValueError, match=r"normalize_from_demos=True .* not wrapped in VecNormalize\(norm_obs=True\)"):
+        tiny_model(DIPPER, maze_env, demo_path=str(maze_demos), normalize_from_demos=True)
 
 
 def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypatch):
