@@ -176,7 +176,7 @@ def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, m
 
 
 def test_normalize_from_demos_needs_demonstrations_and_vec_normalize(maze_demos, maze_env):
-    with pytest.raises(ValueError, match="normalize_from_demos=True .* pass demo_path"):
+    with pytest.raises(ValueError, match=r"normalize_from_demos=True .* pass demo_path"):
         tiny_model(DIPPER, VecNormalize(short_maze()), normalize_from_demos=True)
     with pytest.raises(ValueError, match=r"normalize_from_demos=True .* not wrapped in VecNormalize\(norm_obs=True\)"):
         tiny_model(DIPPER, maze_env, demo_path=str(maze_demos), normalize_from_demos=True)
