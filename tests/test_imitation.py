@@ -160,7 +160,7 @@ def test_normalize_like_demonstrations_scales_by_the_demonstrations_states(maze_
 
 @pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
 def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, maze_demos, tmp_path):
-    """Through training, into both levels' inputs, and again for the env a saved model is loaded with."""
+    """Through training, into both levels' inputs, and again for the env a saved model is loaded with or moved to."""
     demonstrations = load_demonstrations(maze_demos).first_episodes(2)
     expected_mean = demonstrations.observations["observation"].astype(np.float64).mean(0)
     env = VecNormalize(short_maze(), norm_reward=False)
@@ -173,13 +173,22 @@ def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, m
     loaded = model_class.load(tmp_path / "model.zip", env=fresh)
     np.testing.assert_allclose(fresh.obs_rms["observation"].mean, expected_mean)
     assert not fresh.training and loaded.normalize_from_demos
+    another = VecNormalize(short_maze(seed=5), norm_reward=False)
+    model.set_env(another)
+    np.testing.assert_allclose(another.obs_rms["observation"].mean, expected_mean)
 
 
 def test_normalize_from_demos_needs_demonstrations_and_vec_normalize(maze_demos, maze_env):
     with pytest.raises(ValueError, match=r"normalize_from_demos=True .* pass demo_path"):
         tiny_model(DIPPER, VecNormalize(short_maze()), normalize_from_demos=True)
-    with pytest.raises(ValueError, match=r"normalize_from_demos=True .* not wrapped in VecNormalize\(norm_obs=True\)"):
+    unwrapped = r"normalize_from_demos=True .* not wrapped in VecNormalize\(norm_obs=True\)"
+    with pytest.raises(ValueError, match=unwrapped):
         tiny_model(DIPPER, maze_env, demo_path=str(maze_demos), normalize_from_demos=True)
+    env = VecNormalize(short_maze(), norm_reward=False)
+    model = tiny_model(DIPPER, env, demo_path=str(maze_demos), normalize_from_demos=True)
+    with pytest.raises(ValueError, match=unwrapped):
+        model.set_env(maze_env)
+    assert model.env is env, "a refused env leaves the model as it was"
 
 
 def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypatch):

@@ -31,7 +31,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import safe_mean
-from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_normalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.demonstrations import Demonstrations, demonstrations_for, normalize_like_demonstrations
@@ -273,15 +273,20 @@ class HierarchicalAlgorithm(CheckedLoading):
         assert self.max_episode_steps is not None
         return math.ceil(self.max_episode_steps / self.option_steps)
 
-    def _normalize_like(self, demonstrations: Demonstrations) -> None:
-        """``normalize_from_demos``: fix the env's ``VecNormalize`` statistics to the demonstrations' states."""
-        vec_normalize = self._vec_normalize_env
+    @staticmethod
+    def _normalizable(vec_normalize: VecNormalize | None) -> VecNormalize:
+        """``vec_normalize``, or the error ``normalize_from_demos`` gives for an env without observation statistics."""
         if vec_normalize is None or not vec_normalize.norm_obs:
             raise ValueError(
                 "normalize_from_demos=True sets the observation statistics of the env's VecNormalize, but the env is "
                 "not wrapped in VecNormalize(norm_obs=True): wrap it (the zoo's normalize: true) or set "
                 "normalize_from_demos=False"
             )
+        return vec_normalize
+
+    def _normalize_like(self, demonstrations: Demonstrations) -> None:
+        """``normalize_from_demos``: fix the env's ``VecNormalize`` statistics to the demonstrations' states."""
+        vec_normalize = self._normalizable(self._vec_normalize_env)
         normalize_like_demonstrations(vec_normalize, demonstrations)
         if self.low_normalizer is not None:
             self.low_normalizer.refresh(vec_normalize)
@@ -602,6 +607,8 @@ class HierarchicalAlgorithm(CheckedLoading):
         ``load_replay_buffer`` after ``set_env``). A model that has an env keeps its replay data, as in SB3, and its
         option layer moves to ``env``.
         """
+        if self.normalize_from_demos:  # refused before anything changes
+            self._normalizable(unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None)
         super().set_env(env, force_reset)
         if self.option_env is None:
             self._rebuild_keeping_parameters()
