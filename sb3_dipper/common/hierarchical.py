@@ -286,10 +286,8 @@ class HierarchicalAlgorithm(CheckedLoading):
 
     def _normalize_like(self, demonstrations: Demonstrations) -> None:
         """``normalize_from_demos``: fix the env's ``VecNormalize`` statistics to the demonstrations' states."""
-        vec_normalize = self._normalizable(self._vec_normalize_env)
-        normalize_like_demonstrations(vec_normalize, demonstrations)
-        if self.low_normalizer is not None:
-            self.low_normalizer.refresh(vec_normalize)
+        normalize_like_demonstrations(self._normalizable(self._vec_normalize_env), demonstrations)
+        self._refresh_low_normalizer()
 
     def _setup_low_level(self, demonstrations: Demonstrations | None = None) -> None:
         """The lower SAC, cloning ``demonstrations`` (the first ``n_demos`` of ``demo_path``) when given."""
