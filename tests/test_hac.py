@@ -121,7 +121,7 @@ def hand_option(model: HAC, tested: list[bool], dones: list[bool], option_steps:
     reached = np.array([[1.75, 1.8], [0.7, -1.4]])
     end = {"observation": np.concatenate([reached, np.zeros((2, 2))], axis=1), "achieved_goal": reached, "desired_goal": goals}
     model.option_env.reached_obs = end
-    model._subgoal_tester.tested = np.array(tested)
+    model.low_level.greedy = np.array(tested)
     infos = [{"achieved_subgoal": reached[env], "option_steps": option_steps} for env in range(2)]
     high_actions = np.array([[0.5, 0.5], [-1.0, 0.0]], dtype=np.float32)
     model._store_option(start, high_actions, end, np.zeros(2), np.array(dones), infos)

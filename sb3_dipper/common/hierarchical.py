@@ -108,6 +108,9 @@ class HierarchicalAlgorithm(CheckedLoading):
         instead of the ``VecNormalize`` running statistics of the visited states (beyond the paper; needs ``demo_path``
         and an env wrapped in ``VecNormalize(norm_obs=True)``; see
         :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
+    :param greedy_episode_prob: probability that an env's training episode is collected with the lower level acting
+        greedily (its deterministic action, as in evaluation) while the higher level explores as usual; drawn per env
+        at each episode's start (beyond the paper: HAC's subgoal testing per episode; 0: every episode explores)
     :param max_episode_steps: base-env episode length (default: read from the env's ``TimeLimit``)
     :param policy_kwargs: keyword arguments of the higher-level policy
     :param stats_window_size: window of the rollout statistics
@@ -127,6 +130,7 @@ class HierarchicalAlgorithm(CheckedLoading):
     _lower_n_updates: int = 0
     # Models saved before this setting existed load with its default.
     normalize_from_demos: bool = False
+    greedy_episode_prob: float = 0.0
 
     def __init__(
         self,
@@ -155,6 +159,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         rl_coef: float = 1e-3,
         q_filter: bool = True,
         normalize_from_demos: bool = False,
+        greedy_episode_prob: float = 0.0,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -188,6 +193,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         demo_share = as_float("demo_share", demo_share, 0.0, 1.0)
         bc_coef = as_float("bc_coef", bc_coef, 0.0, reason="it weighs a loss")
         rl_coef = as_float("rl_coef", rl_coef, 0.0, reason="it weighs a loss")
+        greedy_episode_prob = as_float("greedy_episode_prob", greedy_episode_prob, 0.0, 1.0)
         if normalize_from_demos and demo_path is None:
             raise ValueError(
                 "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
@@ -228,6 +234,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.rl_coef = rl_coef
         self.q_filter = q_filter
         self.normalize_from_demos = normalize_from_demos
+        self.greedy_episode_prob = greedy_episode_prob
         self.max_episode_steps = max_episode_steps
         self.low_normalizer: SubgoalNormalizer | None = None
         self._low_steps_since_train = 0
@@ -499,6 +506,8 @@ class HierarchicalAlgorithm(CheckedLoading):
         assert self.option_env is not None and self._last_obs is not None
         self.policy.set_training_mode(False)
         self.low_level.random_actions = self.num_timesteps < self.learning_starts
+        if self.greedy_episode_prob > 0.0 and self.low_level.greedy is None:  # the first episodes (or after a load)
+            self._draw_greedy_episodes(np.ones(self.n_envs, dtype=bool))
         self._refresh_low_normalizer()
         self._callback.on_rollout_start()
         start_obs = {key: value.copy() for key, value in self.option_env.original_obs.items()}  # type: ignore[union-attr]
@@ -542,6 +551,7 @@ class HierarchicalAlgorithm(CheckedLoading):
             # The option ends at this step, so its lower segment does too: no HER episode spans two subgoals.
             transition.segment_ends = np.ones_like(transition.segment_ends)
         self.low_level.store(transition)
+        self._draw_greedy_episodes(dones)
         self._update_info_buffer(infos, dones)
         self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
         for _ in range(int(np.sum(dones))):
@@ -549,6 +559,14 @@ class HierarchicalAlgorithm(CheckedLoading):
             if self._log_interval is not None and self._episode_num % self._log_interval == 0:
                 self.dump_logs()
         return self._continue_training
+
+    def _draw_greedy_episodes(self, starting: np.ndarray) -> None:
+        """``greedy_episode_prob``: whether the envs of the mask ``starting`` collect their next episode greedily."""
+        if self.greedy_episode_prob == 0.0:  # no draw: the random stream stays that of a run without the switch
+            return
+        if self.low_level.greedy is None:
+            self.low_level.greedy = np.zeros(self.n_envs, dtype=bool)
+        self.low_level.greedy[starting] = self._rng.random(int(starting.sum())) < self.greedy_episode_prob
 
     def _has_training_data(self) -> bool:
         """Whether the buffers can be sampled (a model resumed without its buffers must first collect some)."""

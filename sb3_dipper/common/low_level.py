@@ -324,6 +324,9 @@ class SACLowLevel:
         self.sac = sac
         self.normalizer = normalizer
         self.random_actions = False
+        # Envs whose lower level acts greedily (its deterministic action) while collecting: HAC's tested subgoals,
+        # or the greedy episodes of ``greedy_episode_prob``. None: every env explores.
+        self.greedy: np.ndarray | None = None
 
     def tensor_obs(self, low_obs: DictObs, normalized: bool = False) -> dict[str, th.Tensor]:
         if not normalized and self.normalizer is not None:
@@ -339,9 +342,18 @@ class SACLowLevel:
         if self.random_actions:
             scaled = np.random.uniform(-1.0, 1.0, size=(n_envs, get_action_dim(self.sac.action_space))).astype(np.float32)
         else:
-            with th.no_grad():
-                scaled = self.sac.actor(self.tensor_obs(low_obs, normalized), deterministic=deterministic).cpu().numpy()
+            greedy = np.full(n_envs, deterministic) if deterministic or self.greedy is None else self.greedy
+            if greedy.all() or not greedy.any():
+                scaled = self._scaled_actions(low_obs, bool(greedy.all()), normalized)
+            else:
+                scaled = self._scaled_actions(low_obs, False, normalized)
+                greedy_obs = {key: value[greedy] for key, value in low_obs.items()}
+                scaled[greedy] = self._scaled_actions(greedy_obs, True, normalized)
         return self.sac.policy.unscale_action(scaled)
+
+    def _scaled_actions(self, low_obs: DictObs, deterministic: bool, normalized: bool) -> np.ndarray:
+        with th.no_grad():
+            return self.sac.actor(self.tensor_obs(low_obs, normalized), deterministic=deterministic).cpu().numpy()
 
     def value(self, low_obs: DictObs) -> np.ndarray | None:
         with th.no_grad():

@@ -127,6 +127,8 @@ class DIPPER(HierarchicalAlgorithm):
     :param normalize_from_demos: scale observations by the demonstrations' states, fixed, instead of the
         ``VecNormalize`` running statistics (beyond the paper; needs ``demo_path`` and ``VecNormalize``; see
         :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
+    :param greedy_episode_prob: probability that an env's training episode is collected with the lower level acting
+        greedily (its deterministic action) while the higher level explores (beyond the paper; 0: off)
     :param max_episode_steps: base episode length (default: the env's time limit)
     :param policy_kwargs: higher-level policy kwargs (``net_arch``, ``acting_tau``, ...)
     :param stats_window_size: window of rollout statistics
@@ -189,6 +191,7 @@ class DIPPER(HierarchicalAlgorithm):
         rl_coef: float = 1e-3,
         q_filter: bool = True,
         normalize_from_demos: bool = False,
+        greedy_episode_prob: float = 0.0,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -224,6 +227,7 @@ class DIPPER(HierarchicalAlgorithm):
             rl_coef=rl_coef,
             q_filter=q_filter,
             normalize_from_demos=normalize_from_demos,
+            greedy_episode_prob=greedy_episode_prob,
             max_episode_steps=max_episode_steps,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,

@@ -50,7 +50,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.hierarchical import has_finished_episode
-from sb3_dipper.common.low_level import SACLowLevel, clipped_soft_target, step_entropy_coefficient
+from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import as_int, as_optional_int, sparse_goal_reached_fn
@@ -136,30 +136,6 @@ class ClippedSAC(SAC):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
-
-
-class SubgoalTestingLowLevel:
-    """The option layer's lower level during HAC training: greedy (deterministic, no exploration) where tested.
-
-    :param low_level: the lower SAC's controller
-    :param n_envs: number of envs of the option layer
-    """
-
-    def __init__(self, low_level: SACLowLevel, n_envs: int) -> None:
-        self.low_level = low_level
-        self.tested = np.zeros(n_envs, dtype=bool)
-
-    def act(self, low_obs: DictObs, deterministic: bool) -> np.ndarray:
-        if deterministic or self.tested.all():
-            return self.low_level.act(low_obs, deterministic=True)
-        actions = self.low_level.act(low_obs, deterministic=False)
-        if self.tested.any():
-            tested_obs = {key: value[self.tested] for key, value in low_obs.items()}
-            actions[self.tested] = self.low_level.act(tested_obs, deterministic=True)
-        return actions
-
-    def value(self, low_obs: DictObs) -> np.ndarray | None:
-        return self.low_level.value(low_obs)
 
 
 class EpisodeWindows:
@@ -402,12 +378,6 @@ class HAC(HIER):
         if self.env is not None:
             self._goal_reached = sparse_goal_reached_fn(self.env)
 
-    def _setup_model(self) -> None:
-        super()._setup_model()
-        self._subgoal_tester = SubgoalTestingLowLevel(self.low_level, self.n_envs)
-        if self.option_env is not None:
-            self.option_env.low_level = self._subgoal_tester
-
     def learn(
         self: SelfHAC,
         total_timesteps: int,
@@ -429,7 +399,7 @@ class HAC(HIER):
     def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
         """The subgoals to propose, and which of them to test (the lower level then acts greedily on them)."""
         actions = super()._training_high_level_actions(observation)
-        self._subgoal_tester.tested = self._greedy_options()
+        self.low_level.greedy = self._greedy_options()
         return actions
 
     def _greedy_options(self) -> np.ndarray:
@@ -456,7 +426,8 @@ class HAC(HIER):
         space, reached_obs = self.subgoal_space, self.option_env.reached_obs
         achieved = np.stack([info["achieved_subgoal"] for info in infos])
         subgoal_reached = space.compute_reward(achieved, space.to_world(high_actions)) == 0.0
-        greedy = self._subgoal_tester.tested
+        greedy = self.low_level.greedy
+        assert greedy is not None, "set with the option's subgoals"
         goal_reward, goal_done = goal_rewards(reached_obs["achieved_goal"], start_obs["desired_goal"], self._goal_reached)
         done = self._bootstrap_flags(goal_done)
 
@@ -554,4 +525,4 @@ class HAC(HIER):
         return has_finished_episode(self.lower.replay_buffer) and self.higher.replay_buffer.size() > 0  # type: ignore[union-attr]
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_windows", "_episode_counts", "_goal_reached", "_subgoal_tester"]
+        return [*super()._excluded_save_params(), "_windows", "_episode_counts", "_goal_reached"]
