@@ -14,6 +14,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from sb3_dipper import DIPPER, HIER
+from sb3_dipper.common.hierarchical_policy import SACPolicyLowLevel
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
@@ -171,6 +172,42 @@ def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_
     assert list(report) == ["as_trained", "untrained_policy", "lower_level_alone"]
     assert all(case["planned_share"] == 0 for case in report.values())
     assert pd.read_csv(tmp_path / "share.csv")["case"].tolist() == list(report)
+
+
+def test_planner_share_sampled_cases_sample_the_levels_as_training_collects(tmp_path, monkeypatch):
+    """``--sampled``: both levels sample (``sampled``), or the higher level samples and the lower is greedy."""
+    run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
+    maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
+    tiny_model(DIPPER, maze_env).save(run / "PointMazeFourRooms-v0.zip")
+    calls = {"higher": [], "lower": []}
+    high_level_actions, lower_actions = DIPPER._high_level_actions, SACPolicyLowLevel.act
+
+    def spy_higher(self, observation, deterministic):
+        calls["higher"].append(deterministic)
+        return high_level_actions(self, observation, deterministic)
+
+    def spy_lower(self, low_obs, deterministic, normalized=True):
+        calls["lower"].append(deterministic)
+        return lower_actions(self, low_obs, deterministic, normalized)
+
+    monkeypatch.setattr(DIPPER, "_high_level_actions", spy_higher)
+    monkeypatch.setattr(SACPolicyLowLevel, "act", spy_lower)
+    expected = {
+        "as_trained": (True, True),
+        "untrained_policy": (True, True),
+        "lower_level_alone": (None, True),
+        "sampled": (False, False),
+        "greedy_lower": (False, True),
+    }
+    _, report = planner_share.measure(run, "dipper", "PointMazeFourRooms-v0", n_episodes=1, sampled=True)
+    assert list(report) == list(expected)
+    for case, (higher, lower) in expected.items():
+        calls["higher"].clear()
+        calls["lower"].clear()
+        model, env = planner_share.trained_run(run, "dipper", "PointMazeFourRooms-v0", seed=0)
+        planner_share.evaluate(model, env, 1, **planner_share.case_settings(case))
+        assert set(calls["higher"]) == (set() if higher is None else {higher}), case
+        assert set(calls["lower"]) == {lower}, case
 
 
 def test_planner_share_refuses_a_model_that_is_not_a_dipper(tmp_path):

@@ -173,15 +173,15 @@ def measure_runs(
         write_bytes_atomically(args.csv, ("\n".join(rows) + "\n").encode())
 
 
-def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int) -> list[float]:
-    """``info["is_success"]`` at the end of each of ``n_episodes`` deterministic evaluation episodes."""
+def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int, deterministic: bool = True) -> list[float]:
+    """``info["is_success"]`` at the end of each of ``n_episodes`` evaluation episodes (deterministic by default)."""
     successes: list[float] = []
 
     def record(local_vars: dict[str, Any], _globals: dict[str, Any]) -> None:
         if local_vars["done"]:
             successes.append(float(local_vars["info"].get("is_success", 0.0)))
 
-    evaluate_policy(model, env, n_eval_episodes=n_episodes, deterministic=True, callback=record)
+    evaluate_policy(model, env, n_eval_episodes=n_episodes, deterministic=deterministic, callback=record)
     return successes[:n_episodes]
 
 

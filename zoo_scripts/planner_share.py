@@ -20,11 +20,19 @@ with ``VecNormalize`` is evaluated with the observation statistics it trained wi
 A DIPPER without the planner (``planning`` ``"off"`` or ``"waypoint"``: the paper's DIPPER, DIPPER-No-V) gets the three
 cases that do not need it: as trained (its policy alone), with the higher policy untrained and with the env's goal as
 every subgoal; whether its success is the preference-trained policy's or the lower level's alone.
+
+``--sampled`` adds two cases that act as training collects (without its uniformly random subgoals): ``sampled``, both
+levels sampling their policies, and ``greedy_lower``, the higher level sampling while the lower level acts
+deterministically (a ``greedy_episode_prob`` episode). Where the deterministic model succeeds and ``sampled`` never
+does, the training episodes all fail alike and a preference label has nothing to tell apart.
+
+    python zoo_scripts/planner_share.py runs/p9/default/seed_0/dipper/FrankaKitchenMicrowaveBurner-v0_1 --sampled
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 from pathlib import Path
@@ -43,30 +51,51 @@ from configs import episode_successes, measure_runs, trained_run
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 # Without the subgoal planner the model as trained is its policy alone.
 CASES_WITHOUT_PLANNER = tuple(case for case in CASES if case != "policy_alone")
+# With --sampled: the model acting as training collects, both levels sampling or the lower level greedy.
+SAMPLED_CASES = ("sampled", "greedy_lower")
 
 
-def evaluate(model: DIPPER, env: VecEnv, n_episodes: int, goal_as_subgoal: bool = False) -> dict[str, float]:
-    """Deterministic success over ``n_episodes`` and the share of higher-level decisions the planner made.
+def evaluate(
+    model: DIPPER,
+    env: VecEnv,
+    n_episodes: int,
+    goal_as_subgoal: bool = False,
+    sample_higher: bool = False,
+    sample_lower: bool = False,
+) -> dict[str, float]:
+    """Success over ``n_episodes`` and the share of higher-level decisions the planner made; both levels act
+    deterministically unless told to sample.
 
     :param goal_as_subgoal: replace the higher level by the env's goal as every subgoal (the lower level alone)
+    :param sample_higher: the higher level samples its policy, as while collecting
+    :param sample_lower: the lower level samples its policy, as while collecting
     """
     decisions = {"planned": 0, "all": 0}
     decide = model._high_level_actions
 
-    def counted(observation, deterministic):  # type: ignore[no-untyped-def]
+    def counted(observation, deterministic):  # type: ignore[no-untyped-def]  # the case decides, not predict's flag
         if goal_as_subgoal:
             return model._planned_actions(observation)
-        actions = decide(observation, deterministic)
+        actions = decide(observation, not sample_higher)
         decisions["planned"] += int(model.last_planned.sum())
         decisions["all"] += int(model.last_planned.size)
         return actions
 
     model._high_level_actions = counted  # type: ignore[method-assign]
     try:
-        success = float(np.mean(episode_successes(model, env, n_episodes)))
+        success = float(np.mean(episode_successes(model, env, n_episodes, deterministic=not sample_lower)))
     finally:
         del model._high_level_actions
     return {"success": success, "planned_share": decisions["planned"] / max(decisions["all"], 1)}
+
+
+def case_settings(case: str) -> dict[str, bool]:
+    """How :func:`evaluate` runs ``case`` (the untrained policy and the planner off are set on the model instead)."""
+    return {
+        "goal_as_subgoal": case == "lower_level_alone",
+        "sample_higher": case in SAMPLED_CASES,
+        "sample_lower": case == "sampled",
+    }
 
 
 def reset_higher_policy(model: DIPPER, seed: int) -> None:
@@ -79,10 +108,11 @@ def reset_higher_policy(model: DIPPER, seed: int) -> None:
 
 
 def measure(
-    run: Path, algo: str, env_id: str, n_episodes: int, model_file: Path | None = None
+    run: Path, algo: str, env_id: str, n_episodes: int, model_file: Path | None = None, sampled: bool = False
 ) -> tuple[int, dict[str, dict[str, float]]]:
-    """Every case of :data:`CASES` (of :data:`CASES_WITHOUT_PLANNER` for a model without the subgoal planner) on a
-    fresh copy of the run's model (or of ``model_file``), and the primitive steps that model had trained."""
+    """Every case of :data:`CASES` (of :data:`CASES_WITHOUT_PLANNER` for a model without the subgoal planner, and
+    :data:`SAMPLED_CASES` with ``sampled``) on a fresh copy of the run's model (or of ``model_file``), and the
+    primitive steps that model had trained."""
 
     def fresh_model() -> tuple[DIPPER, VecEnv]:
         model, env = trained_run(run, algo, env_id, seed=20_000, model_file=model_file)
@@ -93,7 +123,7 @@ def measure(
     results: dict[str, dict[str, float]] = {}
     model, env = fresh_model()
     steps = model.num_timesteps
-    cases = CASES if model.planning == "subgoal" else CASES_WITHOUT_PLANNER
+    cases = (CASES if model.planning == "subgoal" else CASES_WITHOUT_PLANNER) + (SAMPLED_CASES if sampled else ())
     for case in cases:
         if results:  # every case after the first on a fresh copy: a case changes the model
             model, env = fresh_model()
@@ -101,7 +131,7 @@ def measure(
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":
             model.subgoal_graph = None
-        results[case] = evaluate(model, env, n_episodes, goal_as_subgoal=case == "lower_level_alone")
+        results[case] = evaluate(model, env, n_episodes, **case_settings(case))
         env.close()
     return steps, results
 
@@ -114,8 +144,10 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
     parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
+    parser.add_argument("--sampled", action="store_true", help="also act as training collects: " + ", ".join(SAMPLED_CASES))
     args = parser.parse_args()
-    measure_runs(parser, args, measure, "planner_share.json", ("case", "success", "planned_share"))
+    measure_sampled = functools.partial(measure, sampled=args.sampled)
+    measure_runs(parser, args, measure_sampled, "planner_share.json", ("case", "success", "planned_share"))
 
 
 if __name__ == "__main__":
