@@ -58,7 +58,7 @@ def test_greedy_episodes_are_drawn_per_env_when_its_episode_starts(tmp_path):
     model.learn(40)
     before = model.low_level.greedy.copy()
     for _ in range(20):
-        model._draw_greedy_episodes(np.array([True, False, False, False]))
+        model._draw_greedy_episodes(np.array([1, 0, 0, 0]))  # dones as numbers select envs, not indices
         np.testing.assert_array_equal(model.low_level.greedy[1:], before[1:])
     shares = []
     for _ in range(2000):

@@ -566,6 +566,7 @@ class HierarchicalAlgorithm(CheckedLoading):
             return
         if self.low_level.greedy is None:
             self.low_level.greedy = np.zeros(self.n_envs, dtype=bool)
+        starting = np.asarray(starting, dtype=bool)  # a mask, also where a VecEnv reports dones as numbers
         self.low_level.greedy[starting] = self._rng.random(int(starting.sum())) < self.greedy_episode_prob
 
     def _has_training_data(self) -> bool:
