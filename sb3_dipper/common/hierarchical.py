@@ -47,7 +47,6 @@ from sb3_dipper.common.imitation import DemonstrationBuffer, DemoSAC
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.low_level import (
     LevelLogger,
-    LowerSACPolicy,
     SACLowLevel,
     SubgoalNormalizer,
     SubgoalVecEnv,
@@ -94,8 +93,7 @@ class HierarchicalAlgorithm(CheckedLoading):
     :param ent_coef: lower-level SAC entropy coefficient (``"auto"`` learns it)
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs (``n_sampled_goal``, ``goal_selection_strategy``)
     :param low_learning_rate: learning rate of the lower SAC
-    :param low_policy_kwargs: ``policy_kwargs`` of the lower SAC, a :class:`~sb3_dipper.common.low_level.LowerSACPolicy`
-        (for example ``net_arch``, ``acting_tau``)
+    :param low_policy_kwargs: ``policy_kwargs`` of the lower SAC (for example ``net_arch``)
     :param low_level_kwargs: any other keyword argument of the lower ``SAC``
     :param random_subgoal_prob: probability that a subgoal is drawn uniformly at random during training
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (see
@@ -309,7 +307,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         )
         buffer_size = self.buffer_size if self.env is not None else PREDICT_ONLY_BUFFER_SIZE * self.n_envs
         self.lower = DemoSAC(
-            LowerSACPolicy,
+            "MultiInputPolicy",
             low_env,
             learning_rate=self.low_learning_rate,
             buffer_size=buffer_size,

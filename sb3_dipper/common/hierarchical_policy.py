@@ -88,7 +88,7 @@ class SACPolicyLowLevel:
             raise ValueError("SACPolicyLowLevel acts on normalised lower observations: normalise them first")
         tensors = {key: th.as_tensor(value, dtype=th.float32, device=self.policy.device) for key, value in low_obs.items()}
         with th.no_grad():
-            scaled = self.policy(tensors, deterministic=deterministic).cpu().numpy()
+            scaled = self.policy.actor(tensors, deterministic=deterministic).cpu().numpy()
         return self.policy.unscale_action(scaled)
 
 

@@ -28,7 +28,7 @@ from stable_baselines3.common.type_aliases import DictReplayBufferSamples
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
-from sb3_dipper.common.low_level import LowerSACPolicy, clipped_soft_target, step_entropy_coefficient
+from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.subgoals import SubgoalSpace
 
 
@@ -82,8 +82,6 @@ class DemonstrationBuffer:
 
 class DemoSAC(SAC):
     """SB3's SAC whose actor also clones Q-filtered demonstrations (see the module docstring); plain SAC without them.
-    With a :class:`~sb3_dipper.common.low_level.LowerSACPolicy` that acts with an average (``acting_tau < 1``), the
-    average takes one Polyak step after every actor update.
 
     :param demonstrations: demo transitions (``None``: this is exactly SB3's SAC)
     :param demo_share: fraction of each batch drawn from the demonstrations
@@ -116,10 +114,7 @@ class DemoSAC(SAC):
         self.target_q_bounds = None if target_q_bounds is None else (float(target_q_bounds[0]), float(target_q_bounds[1]))
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        # SB3's own loop unless cloning, clipping or an acting average (updated after each actor step) needs this one.
-        lower_policy = self.policy if isinstance(self.policy, LowerSACPolicy) else None
-        averaging = lower_policy is not None and lower_policy.averaged_actor is not None
-        if self.demonstrations is None and self.target_q_bounds is None and not averaging:
+        if self.demonstrations is None and self.target_q_bounds is None:
             return super().train(gradient_steps, batch_size)
         self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
@@ -168,8 +163,6 @@ class DemoSAC(SAC):
             finally:
                 self._set_q_networks_trainable(True)
             self.actor.optimizer.step()
-            if lower_policy is not None:
-                lower_policy.update_averaged_actor()
             for key, value in zip(log_keys, (actor_loss, critic_loss, ent_coef, bc_loss, kept), strict=True):
                 logs[key].append(value.detach())  # type: ignore[union-attr]
 

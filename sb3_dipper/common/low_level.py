@@ -8,7 +8,6 @@ its ``train()``. Its log keys go through :class:`LevelLogger` so the two levels 
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from typing import Any
 
@@ -20,10 +19,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.preprocessing import get_action_dim
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
-from stable_baselines3.common.type_aliases import PyTorchObs
-from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
-from stable_baselines3.sac.policies import MultiInputPolicy
 
 from sb3_dipper.common.option_env import DictObs, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace
@@ -317,48 +313,6 @@ def sac_dead_units(sac: SAC, normalizer: SubgoalNormalizer | None = None, n_rows
     return {name: share for name, share in shares.items() if share is not None}
 
 
-class LowerSACPolicy(MultiInputPolicy):
-    """SB3's SAC ``MultiInputPolicy`` for the lower level, optionally acting with a Polyak average of its actor.
-
-    With ``acting_tau < 1`` (beyond the paper) the lower level acts (collects, is evaluated, is exported) with
-    ``averaged_actor``, updated as ``averaged <- (1 - acting_tau) averaged + acting_tau actor`` after every actor
-    update; the trained actor stays what the losses and the critics' targets use. On the kitchen, cloning twenty
-    demonstrations, the trained actor's success changes from one evaluation to the next as its weights move with each
-    batch; an average over the last few thousand updates is steadier (BENCHMARKS.md, the paper's tasks, section 25).
-
-    :param acting_tau: Polyak weight of the acting average per actor update, in (0, 1]; 1: act with the trained actor
-    :param args: SB3's ``MultiInputPolicy`` arguments (``observation_space``, ``action_space``, ``lr_schedule``, ...)
-    :param kwargs: its keyword arguments (``net_arch``, ...)
-    """
-
-    averaged_actor: th.nn.Module | None
-
-    def __init__(self, *args: Any, acting_tau: float = 1.0, **kwargs: Any) -> None:
-        if not 0.0 < acting_tau <= 1.0:
-            raise ValueError(
-                f"low_policy_kwargs['acting_tau'] must be in (0, 1], got {acting_tau}: 1 acts with the trained lower "
-                "actor, a smaller value with a Polyak average of it (0.001 averages over about the last 1,000 updates)"
-            )
-        self.acting_tau = acting_tau
-        super().__init__(*args, **kwargs)
-
-    def _build(self, lr_schedule: Any) -> None:
-        super()._build(lr_schedule)
-        self.averaged_actor = copy.deepcopy(self.actor).requires_grad_(False) if self.acting_tau < 1.0 else None
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        return {**super()._get_constructor_parameters(), "acting_tau": self.acting_tau}
-
-    def update_averaged_actor(self) -> None:
-        """One Polyak step of the acting average toward the trained actor (after each actor update)."""
-        if self.averaged_actor is not None:
-            polyak_update(self.actor.parameters(), self.averaged_actor.parameters(), self.acting_tau)
-
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        acting = self.actor if self.averaged_actor is None else self.averaged_actor
-        return acting(observation, deterministic)
-
-
 class SACLowLevel:
     """The option layer's view of a lower SAC: batched actions, values, and the sink that fills its buffer.
 
@@ -399,8 +353,7 @@ class SACLowLevel:
 
     def _scaled_actions(self, low_obs: DictObs, deterministic: bool, normalized: bool) -> np.ndarray:
         with th.no_grad():
-            # The policy's forward is how it acts: its averaged actor when it keeps one (LowerSACPolicy), else its actor.
-            return self.sac.policy(self.tensor_obs(low_obs, normalized), deterministic=deterministic).cpu().numpy()
+            return self.sac.actor(self.tensor_obs(low_obs, normalized), deterministic=deterministic).cpu().numpy()
 
     def value(self, low_obs: DictObs) -> np.ndarray | None:
         with th.no_grad():

@@ -115,8 +115,7 @@ class DIPPER(HierarchicalAlgorithm):
     :param ent_coef: lower-level entropy coefficient
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower-level learning rate
-    :param low_policy_kwargs: lower SAC ``policy_kwargs`` (``net_arch``, ``acting_tau``, ...: see
-        :class:`~sb3_dipper.common.low_level.LowerSACPolicy`)
+    :param low_policy_kwargs: lower SAC ``policy_kwargs``
     :param low_level_kwargs: other lower ``SAC`` kwargs
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory, or
         ``"auto"`` for the task's single default scripted demonstration; ``None``: none)

@@ -114,8 +114,7 @@ class HIER(HierarchicalAlgorithm):
     :param ent_coef: lower entropy coefficient
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower learning rate
-    :param low_policy_kwargs: lower SAC ``policy_kwargs`` (``net_arch``, ``acting_tau``, ...: see
-        :class:`~sb3_dipper.common.low_level.LowerSACPolicy`)
+    :param low_policy_kwargs: lower SAC ``policy_kwargs``
     :param low_level_kwargs: other lower ``SAC`` kwargs
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory, or
         ``"auto"`` for the task's single default scripted demonstration; ``None``: none)
