@@ -66,6 +66,24 @@ def test_a_clone_trained_as_a_lower_level_follows_the_demonstrations_subgoals():
     assert driven["success"] == 1.0 and float(driven["options_reached"]) == 1.0  # all 8 options, the last at step 50
 
 
+def test_a_clone_driven_by_the_goal_sees_the_projected_goal_as_every_subgoal():
+    env = gym.make("FetchPushFixed-v0")
+    space = env.unwrapped.subgoal_space
+    seen = []
+
+    class Recorder:
+        def act(self, observation):
+            seen.append(observation["desired_goal"])
+            return np.zeros(4, dtype=np.float32)
+
+    demonstration = default_demonstrations("FetchPushFixed-v0").first_episodes(1)
+    goal = space.project(env.reset(seed=3)[0]["desired_goal"])
+    episode = run_clone(Recorder(), env, demonstration, 3, 0.05, option_steps=7, goal_as_subgoal=True)
+    env.close()
+    assert len(seen) == 50 and all(np.array_equal(subgoal, goal) for subgoal in seen)
+    assert episode["options_reached"] == "0.0000"  # the arm at rest never brings the block to the goal
+
+
 def test_the_command_writes_one_csv_row_per_episode(tmp_path, capsys):
     out = tmp_path / "clone.csv"
     main(["FetchPushFixed-v0", "--net-arch", "16", "--fit-steps", "5", "--episodes", "2", "--csv", str(out)])
@@ -144,3 +162,14 @@ def test_the_command_clones_as_a_lower_level_with_option_steps(tmp_path, capsys,
         main(["FetchPushFixed-v0", *args])
     with pytest.raises(SystemExit):
         main(["FetchPushFixed-v0", *args[:-3], "0"])
+
+
+def test_the_command_drives_the_clone_by_the_goal_with_drive_goal(tmp_path, capsys):
+    out = tmp_path / "clone.csv"
+    args = ["--net-arch", "16", "--fit-steps", "5", "--episodes", "1", "--csv", str(out)]
+    main(["FetchPushFixed-v0", *args, "--option-steps", "7", "--drive", "goal"])
+    (row,) = list(csv.DictReader(out.open()))
+    assert row["driver"] == "goal" and row["option_steps"] == "7"
+    assert "(driven by the goal's subgoals)" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["FetchPushFixed-v0", *args, "--drive", "goal"])  # without --option-steps

@@ -29,6 +29,10 @@ clone follows the subgoals and a trained lower level does not, the cloning term 
 
     python zoo_scripts/clone_demonstration.py FrankaKitchenMicrowaveBurner-v0 --demo-path kitchen-dart.npz \
         --n-demos 20 --option-steps 15
+
+``--drive goal`` drives that clone with the task's goal as every subgoal instead, as a lower level acts under a higher
+level that proposes nothing useful (``planner_share.py``'s ``goal_as_subgoal``): the gap to the demonstration's
+subgoals is what a higher level's subgoals could add.
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ CSV_FIELDS = (
     "demonstrations",
     "n_demos",
     "option_steps",
+    "driver",
     "fit_steps",
     "fit_seed",
     "fit_loss",
@@ -165,18 +170,24 @@ def run_clone(
     tolerance: float,
     subgoals: np.ndarray | None = None,
     option_steps: int = 1,
+    goal_as_subgoal: bool = False,
 ) -> dict:
     """One closed-loop episode of the clone from ``env.reset(seed=episode_seed)``: its success (``is_success`` at the
     last step, as the benchmarks evaluate), departure step from the demonstration's states and length. With
     ``subgoals`` (one per option of ``option_steps`` steps) the clone sees the option's subgoal in place of the
     desired goal, as a lower level does, and the share of options that ended within the subgoal threshold is
-    reported too."""
+    reported too; with ``goal_as_subgoal`` every option's subgoal is the episode's desired goal, projected."""
     observation, _ = env.reset(seed=episode_seed)
-    space = env.unwrapped.subgoal_space if subgoals is not None else None  # type: ignore[attr-defined]
+    driven = subgoals is not None or goal_as_subgoal
+    space = env.unwrapped.subgoal_space if driven else None  # type: ignore[attr-defined]
     states, reached = [], []
     done, info, step = False, dict[str, Any](), 0
     while not done:
-        subgoal = None if subgoals is None else option_subgoal(subgoals, step, option_steps)
+        subgoal = None
+        if subgoals is not None:
+            subgoal = option_subgoal(subgoals, step, option_steps)
+        elif space is not None:
+            subgoal = space.project(observation["desired_goal"])
         seen = observation if subgoal is None else {**observation, "desired_goal": subgoal}
         observation, _, terminated, truncated, info = env.step(clone.act(seen))
         states.append(observation["observation"])
@@ -203,11 +214,12 @@ def clone_rows(
     n_demos: int = 1,
     option_steps: int | None = None,
     fit_seed: int = 0,
+    driver: str = "demonstration",
 ) -> list[dict]:
     """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
     and run it for episode seeds ``0 .. episodes - 1``; with ``option_steps``, clone and drive it as a lower level
-    (subgoal-conditioned, driven by the default demonstration's subgoals every ``option_steps`` steps). ``fit_seed``
-    seeds the network's initialisation and the batches."""
+    (subgoal-conditioned, driven every ``option_steps`` steps by the default demonstration's subgoals, or with
+    ``driver="goal"`` by the goal). ``fit_seed`` seeds the network's initialisation and the batches."""
     demonstrations = default_demonstrations(env_id) if demo_path is None else load_demonstrations(demo_path)
     demonstrations = demonstrations.first_episodes(n_demos)
     env = gym.make(env_id)
@@ -223,7 +235,7 @@ def clone_rows(
                 raise ValueError(f"--option-steps: {env_id} defines no subgoal space (env.unwrapped.subgoal_space)")
             buffer = DemonstrationBuffer(demonstrations, space, demonstrations.actions)
             sample_batch = subgoal_conditioned_batches(buffer, seed=fit_seed)
-            subgoals = oracle_subgoals(env_id, option_steps, space)
+            subgoals = oracle_subgoals(env_id, option_steps, space) if driver == "demonstration" else None
             reference_inputs, _ = sample_batch(10_000)  # the relabelled subgoals' spread, not the stored goals'
         n_actions = demonstrations.actions.shape[1]
         clone = fit_clone(sample_batch, reference_inputs, n_actions, net_arch, fit_steps, seed=fit_seed)
@@ -233,11 +245,21 @@ def clone_rows(
                 "demonstrations": "default" if demo_path is None else demo_path.name,
                 "n_demos": n_demos,
                 "option_steps": "" if option_steps is None else option_steps,
+                "driver": "" if option_steps is None else driver,
                 "fit_steps": fit_steps,
                 "fit_seed": fit_seed,
                 "fit_loss": f"{clone.fit_loss:.2e}",
                 "episode_seed": seed,
-                **run_clone(clone, env, demonstrations.first_episodes(1), seed, tolerance, subgoals, option_steps or 1),
+                **run_clone(
+                    clone,
+                    env,
+                    demonstrations.first_episodes(1),
+                    seed,
+                    tolerance,
+                    subgoals,
+                    option_steps or 1,
+                    goal_as_subgoal=option_steps is not None and driver == "goal",
+                ),
             }
             for seed in range(episodes)
         ]
@@ -250,7 +272,10 @@ def summary(env_id: str, env_rows: list[dict], args: argparse.Namespace) -> str:
     cloned = "" if args.demo_path is None else f" ({env_rows[0]['n_demos']} of {args.demo_path.name})"
     reached = ""
     if args.option_steps is not None:
-        reached = f", options reached {np.mean([float(row['options_reached']) for row in env_rows]):.2f}"
+        reached = (
+            f", options reached {np.mean([float(row['options_reached']) for row in env_rows]):.2f} "
+            f"(driven by the {args.drive}'s subgoals)"
+        )
     return (
         f"{env_id}{cloned}, fit seed {env_rows[0]['fit_seed']}: success "
         f"{np.mean([row['success'] for row in env_rows]):.2f}{reached} over {args.episodes} episodes, fit loss "
@@ -277,12 +302,20 @@ def main(argv: list[str] | None = None) -> None:
         "the default demonstration's subgoals every K steps, as oracle_subgoals.py drives a trained lower level",
     )
     parser.add_argument(
+        "--drive",
+        choices=("demonstration", "goal"),
+        default="demonstration",
+        help="with --option-steps: the subgoals the clone is driven by, the default demonstration's or the goal",
+    )
+    parser.add_argument(
         "--fit-seeds", type=int, nargs="+", default=[0], help="one clone per seed (initialisation and batches)"
     )
     parser.add_argument("--csv", type=Path, help="also write one row per episode here")
     args = parser.parse_args(argv)
     if min(args.fit_steps, args.episodes, *args.n_demos, 1 if args.option_steps is None else args.option_steps) < 1:
         parser.error("--fit-steps, --episodes, --n-demos and --option-steps must be at least 1")
+    if args.drive != "demonstration" and args.option_steps is None:
+        parser.error("--drive goal drives a clone trained as a lower level: give --option-steps too")
     if args.demo_path is not None and len(args.envs) != 1:
         parser.error(f"--demo-path holds one task's demonstrations: give one env, not {len(args.envs)}")
     th.set_num_threads(1)
@@ -300,6 +333,7 @@ def main(argv: list[str] | None = None) -> None:
                     n_demos,
                     args.option_steps,
                     fit_seed,
+                    args.drive,
                 )
                 print(summary(env_id, env_rows, args))
                 rows += env_rows
