@@ -167,9 +167,11 @@ def test_the_command_clones_as_a_lower_level_with_option_steps(tmp_path, capsys,
 def test_the_command_drives_the_clone_by_the_goal_with_drive_goal(tmp_path, capsys):
     out = tmp_path / "clone.csv"
     args = ["--net-arch", "16", "--fit-steps", "5", "--episodes", "1", "--csv", str(out)]
-    main(["FetchPushFixed-v0", *args, "--option-steps", "7", "--drive", "goal"])
+    main(["FetchPushFixed-v0", *args, "--option-steps", "7", "--drive", "goal", "--batch-size", "8"])
     (row,) = list(csv.DictReader(out.open()))
-    assert row["driver"] == "goal" and row["option_steps"] == "7"
+    assert row["driver"] == "goal" and row["option_steps"] == "7" and row["batch_size"] == "8"
     assert "(driven by the goal's subgoals)" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         main(["FetchPushFixed-v0", *args, "--drive", "goal"])  # without --option-steps
+    with pytest.raises(SystemExit):
+        main(["FetchPushFixed-v0", *args, "--batch-size", "0"])

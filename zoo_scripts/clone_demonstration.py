@@ -32,7 +32,9 @@ clone follows the subgoals and a trained lower level does not, the cloning term 
 
 ``--drive goal`` drives that clone with the task's goal as every subgoal instead, as a lower level acts under a higher
 level that proposes nothing useful (``planner_share.py``'s ``goal_as_subgoal``): the gap to the demonstration's
-subgoals is what a higher level's subgoals could add.
+subgoals is what a higher level's subgoals could add. ``--batch-size`` sets the demonstration steps per Adam step (128);
+a lower level's cloning term sees ``demo_share x batch_size`` of them (32 at the CPU profiles), and on the kitchen a
+clone fitted on batches of 32 succeeds far less reliably (BENCHMARKS.md, section 25).
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ CSV_FIELDS = (
     "option_steps",
     "driver",
     "fit_steps",
+    "batch_size",
     "fit_seed",
     "fit_loss",
     "episode_seed",
@@ -215,11 +218,13 @@ def clone_rows(
     option_steps: int | None = None,
     fit_seed: int = 0,
     driver: str = "demonstration",
+    batch_size: int = 128,
 ) -> list[dict]:
     """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
     and run it for episode seeds ``0 .. episodes - 1``; with ``option_steps``, clone and drive it as a lower level
     (subgoal-conditioned, driven every ``option_steps`` steps by the default demonstration's subgoals, or with
-    ``driver="goal"`` by the goal). ``fit_seed`` seeds the network's initialisation and the batches."""
+    ``driver="goal"`` by the goal). ``fit_seed`` seeds the network's initialisation and the batches of
+    ``batch_size`` demonstration steps."""
     demonstrations = default_demonstrations(env_id) if demo_path is None else load_demonstrations(demo_path)
     demonstrations = demonstrations.first_episodes(n_demos)
     env = gym.make(env_id)
@@ -238,7 +243,7 @@ def clone_rows(
             subgoals = oracle_subgoals(env_id, option_steps, space) if driver == "demonstration" else None
             reference_inputs, _ = sample_batch(10_000)  # the relabelled subgoals' spread, not the stored goals'
         n_actions = demonstrations.actions.shape[1]
-        clone = fit_clone(sample_batch, reference_inputs, n_actions, net_arch, fit_steps, seed=fit_seed)
+        clone = fit_clone(sample_batch, reference_inputs, n_actions, net_arch, fit_steps, batch_size=batch_size, seed=fit_seed)
         return [
             {
                 "env": env_id,
@@ -247,6 +252,7 @@ def clone_rows(
                 "option_steps": "" if option_steps is None else option_steps,
                 "driver": "" if option_steps is None else driver,
                 "fit_steps": fit_steps,
+                "batch_size": batch_size,
                 "fit_seed": fit_seed,
                 "fit_loss": f"{clone.fit_loss:.2e}",
                 "episode_seed": seed,
@@ -289,6 +295,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("envs", nargs="+", help="tasks with a default demonstration (a registered scripted expert)")
     parser.add_argument("--net-arch", type=int, nargs="+", default=[256, 256])
     parser.add_argument("--fit-steps", type=int, default=5000)
+    parser.add_argument(
+        "--batch-size",
+        type=int,
+        default=128,
+        help="demonstration steps per Adam step (a lower level's cloning term sees demo_share x batch_size of them)",
+    )
     parser.add_argument("--episodes", type=int, default=8)
     parser.add_argument("--tolerance", type=float, default=0.05, help="largest observation difference still on the path")
     parser.add_argument("--demo-path", type=Path, help="an npz file of sb3-dipper-demos (default: the task's default one)")
@@ -312,8 +324,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--csv", type=Path, help="also write one row per episode here")
     args = parser.parse_args(argv)
-    if min(args.fit_steps, args.episodes, *args.n_demos, 1 if args.option_steps is None else args.option_steps) < 1:
-        parser.error("--fit-steps, --episodes, --n-demos and --option-steps must be at least 1")
+    option_steps = 1 if args.option_steps is None else args.option_steps
+    if min(args.fit_steps, args.batch_size, args.episodes, *args.n_demos, option_steps) < 1:
+        parser.error("--fit-steps, --batch-size, --episodes, --n-demos and --option-steps must be at least 1")
     if args.drive != "demonstration" and args.option_steps is None:
         parser.error("--drive goal drives a clone trained as a lower level: give --option-steps too")
     if args.demo_path is not None and len(args.envs) != 1:
@@ -334,6 +347,7 @@ def main(argv: list[str] | None = None) -> None:
                     args.option_steps,
                     fit_seed,
                     args.drive,
+                    args.batch_size,
                 )
                 print(summary(env_id, env_rows, args))
                 rows += env_rows
