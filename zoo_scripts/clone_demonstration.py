@@ -183,14 +183,12 @@ def run_clone(
     observation, _ = env.reset(seed=episode_seed)
     driven = subgoals is not None or goal_as_subgoal
     space = env.unwrapped.subgoal_space if driven else None  # type: ignore[attr-defined]
+    if space is not None and goal_as_subgoal:  # the episode's goal is fixed at its reset: one subgoal for every option
+        subgoals = space.project(observation["desired_goal"])[None]
     states, reached = [], []
     done, info, step = False, dict[str, Any](), 0
     while not done:
-        subgoal = None
-        if subgoals is not None:
-            subgoal = option_subgoal(subgoals, step, option_steps)
-        elif space is not None:
-            subgoal = space.project(observation["desired_goal"])
+        subgoal = None if subgoals is None else option_subgoal(subgoals, step, option_steps)
         seen = observation if subgoal is None else {**observation, "desired_goal": subgoal}
         observation, _, terminated, truncated, info = env.step(clone.act(seen))
         states.append(observation["observation"])
