@@ -6,7 +6,12 @@ import pytest
 import torch as th
 
 from sb3_dipper import DIPPER, HIER
-from sb3_dipper.common.demonstrations import demonstrations_for, load_demonstrations, normalize_like_demonstrations
+from sb3_dipper.common.demonstrations import (
+    DART_ACTION_NOISE,
+    demonstrations_for,
+    load_demonstrations,
+    normalize_like_demonstrations,
+)
 from sb3_dipper.common import imitation
 from sb3_dipper.common.imitation import DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
 from sb3_dipper.common.low_level import clipped_soft_target
@@ -201,6 +206,32 @@ def test_default_demonstration_is_made_once_and_deterministic(tmp_path, monkeypa
     np.testing.assert_array_equal(first.actions, fresh.actions)
 
 
+def test_auto_dart_demonstrations_are_the_experts_noisy_episodes_cached_apart(tmp_path, monkeypatch):
+    """demo_path="auto:dart<N>" gives what ``sb3-dipper-demos --n-episodes N --action-noise 0.1`` writes, cached beside
+    (not over) the single default demonstration, and builds a model that clones them."""
+    from sb3_dipper.envs.demos import default_demonstration_path
+
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    env = short_maze()
+    dart = demonstrations_for("auto:dart3", env)
+    written = expert_demonstrations("PointMazeFourRooms-v0", n_episodes=3, seed=0, action_noise=DART_ACTION_NOISE)
+    assert dart.n_episodes == 3
+    np.testing.assert_array_equal(dart.actions, written.actions)
+    np.testing.assert_array_equal(dart.observations["observation"], written.observations["observation"])
+    assert default_demonstration_path("PointMazeFourRooms-v0", 3, DART_ACTION_NOISE).exists()
+    assert not default_demonstration_path("PointMazeFourRooms-v0").exists()
+    single = demonstrations_for("auto", env)
+    assert single.n_episodes == 1 and not np.array_equal(single.actions, dart.first_episodes(1).actions)
+    model = tiny_model(DIPPER, env, demo_path="auto:dart3", n_demos=3)
+    assert model.lower.demonstrations is not None and len(model.lower.demonstrations) == len(dart)
+
+
+@pytest.mark.parametrize("spec", ["auto:dart0", "auto:dart", "auto:20", "auto:dart-5"])
+def test_malformed_auto_demonstration_specs_say_what_is_accepted(spec):
+    with pytest.raises(ValueError, match=r"demo_path='auto:.*'auto' \(one episode\) or 'auto:dart<N>'"):
+        tiny_model(DIPPER, short_maze(), demo_path=spec)
+
+
 class _LineEnv(gym.Env):
     """A goal env on a line whose next position is the position plus the executed action: it shows what was executed."""
 
@@ -278,9 +309,11 @@ def test_auto_demonstrations_name_the_tasks_that_have_one():
     which tasks have one and what to pass instead."""
     env = DummyVecEnv([lambda: gym.make("FetchReach-v4")])
     with pytest.raises(
-        ValueError, match=r"no default demonstration for 'FetchReach-v4' \(tasks with one: .*PointMazeFourRooms-v0"
+        ValueError, match=r"no scripted demonstrations for 'FetchReach-v4' \(tasks with them: .*PointMazeFourRooms-v0"
     ):
         demonstrations_for("auto", env)
+    with pytest.raises(ValueError, match=r"demo_path='auto:dart20': no scripted demonstrations for 'FetchReach-v4'"):
+        demonstrations_for("auto:dart20", env)
 
 
 @pytest.mark.parametrize("with_demos", [True, False])

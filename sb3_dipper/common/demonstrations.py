@@ -18,6 +18,7 @@ Files are written under a temporary name and renamed into place, and read withou
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -206,30 +207,44 @@ def _run_episode(
     return steps
 
 
-# demo_path="auto": each task's single default demonstration, registered by the module that defines the task
-# (sb3_dipper.envs registers one per scripted expert), so this floor names no task.
-_DEFAULT_DEMONSTRATIONS: dict[str, Callable[[], Demonstrations]] = {}
+# demo_path="auto" (and "auto:dart<N>"): each task's scripted demonstrations, registered by the module that defines the
+# task (sb3_dipper.envs registers one maker per scripted expert), so this floor names no task.
+_DEFAULT_DEMONSTRATIONS: dict[str, Callable[[int, float], Demonstrations]] = {}
+# "auto:dart<N>": N episodes of the expert executed with this action noise, the setting measured on the kitchen
+# (BENCHMARKS.md, "the paper's tasks on a CPU", section 25).
+DART_ACTION_NOISE = 0.1
+_DART_SPEC = re.compile(r"auto:dart([1-9][0-9]*)")
 
 
-def register_default_demonstrations(env_id: str, make: Callable[[], Demonstrations]) -> None:
-    """Declare what ``demo_path="auto"`` loads for ``env_id``: ``make()`` returns its demonstrations."""
+def register_default_demonstrations(env_id: str, make: Callable[[int, float], Demonstrations]) -> None:
+    """Declare what ``demo_path="auto"`` loads for ``env_id``: ``make(n_episodes, action_noise)`` returns that many
+    episodes of the task's scripted expert, executed with that action noise (DART when above zero)."""
     _DEFAULT_DEMONSTRATIONS[env_id] = make
 
 
 def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
     """The demonstrations ``demo_path`` names for ``env``: an npz file or a Minari dataset directory
-    (:func:`load_demonstrations`), or ``"auto"``, the default demonstration registered for the env's id."""
-    if demo_path != "auto":
+    (:func:`load_demonstrations`); ``"auto"``, the single default demonstration registered for the env's id (the
+    paper's one demonstration); or ``"auto:dart<N>"``, N DART episodes of the same expert (its actions executed with
+    Gaussian noise of standard deviation ``DART_ACTION_NOISE``, beyond the paper; see :func:`collect_demonstrations`)."""
+    if demo_path != "auto" and not demo_path.startswith("auto:"):
         return load_demonstrations(demo_path)
+    dart = _DART_SPEC.fullmatch(demo_path)
+    if demo_path != "auto" and dart is None:
+        raise ValueError(
+            f"demo_path={demo_path!r}: the scripted expert's demonstrations are 'auto' (one episode) or 'auto:dart<N>' "
+            "(N >= 1 DART episodes, e.g. 'auto:dart20'); a file whose name starts with 'auto:' is passed as './' + name"
+        )
     spec = env.get_attr("spec", indices=[0])[0]
     if spec is None:
-        raise ValueError('demo_path="auto" needs an env made from a registered id; pass a demonstration file instead')
+        raise ValueError(f"demo_path={demo_path!r} needs an env made from a registered id; pass a demonstration file instead")
     if spec.id not in _DEFAULT_DEMONSTRATIONS:
         raise ValueError(
-            f'demo_path="auto": no default demonstration for {spec.id!r} (tasks with one: '
+            f"demo_path={demo_path!r}: no scripted demonstrations for {spec.id!r} (tasks with them: "
             f"{sorted(_DEFAULT_DEMONSTRATIONS)}); pass a demonstration file (sb3-dipper-demos) instead"
         )
-    return _DEFAULT_DEMONSTRATIONS[spec.id]()
+    make = _DEFAULT_DEMONSTRATIONS[spec.id]
+    return make(1, 0.0) if dart is None else make(int(dart.group(1)), DART_ACTION_NOISE)
 
 
 def normalize_like_demonstrations(
@@ -275,7 +290,7 @@ def _load_npz(path: Path) -> Demonstrations:
         path,
         "demonstration file",
         "demo_path takes an npz file written by sb3-dipper-demos (or Demonstrations.save), a Minari dataset directory "
-        'or "auto".',
+        'or "auto" / "auto:dart<N>".',
     )
     required = ["actions", "rewards", "successes", "episode_lengths"] + [
         f"{group}/{key}" for group in ("observations", "next_observations") for key in OBSERVATION_KEYS

@@ -97,8 +97,9 @@ class HierarchicalAlgorithm(CheckedLoading):
     :param low_level_kwargs: any other keyword argument of the lower ``SAC``
     :param random_subgoal_prob: probability that a subgoal is drawn uniformly at random during training
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (see
-        :mod:`sb3_dipper.common.imitation`): an npz file, a Minari dataset directory, or ``"auto"`` for the task's
-        single default scripted demonstration; ``None``: no cloning
+        :mod:`sb3_dipper.common.imitation`): an npz file, a Minari dataset directory, ``"auto"`` for the task's
+        single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of its scripted expert (beyond
+        the paper; :func:`~sb3_dipper.common.demonstrations.demonstrations_for`); ``None``: no cloning
     :param n_demos: how many demonstration episodes to use
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
@@ -197,7 +198,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         if normalize_from_demos and demo_path is None:
             raise ValueError(
                 "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
-                "(an npz file, a Minari directory or 'auto') or set normalize_from_demos=False"
+                "(an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or set normalize_from_demos=False"
             )
         super().__init__(
             policy,

@@ -332,8 +332,9 @@ class DAC(CheckedLoading, SAC):
     :param use_sde: generalized state-dependent exploration
     :param sde_sample_freq: gSDE noise resampling frequency
     :param use_sde_at_warmup: gSDE instead of uniform actions before learning starts
-    :param demo_path: the expert data: ``"auto"`` (the task's single default scripted demonstration), an npz file or a
-        Minari dataset directory (see :mod:`sb3_dipper.common.demonstrations`)
+    :param demo_path: the expert data: ``"auto"`` (the task's single default scripted demonstration), ``"auto:dart<N>"``
+        (N DART episodes of its scripted expert), an npz file or a Minari dataset directory (see
+        :mod:`sb3_dipper.common.demonstrations`)
     :param n_demos: demonstration episodes used (the DIPPER paper: one)
     :param goal_conditioned_discriminator: feed the desired goal to the discriminator, ``D(s, a, g)``
     :param absorbing_states: DAC's absorbing states for episodes that end by termination (no effect on tasks that only

@@ -20,7 +20,7 @@ EXPERTS: dict[str, Callable[[gym.Env], Any]] = {
 
 
 def register_envs() -> None:
-    """Register our env ids and, for ``demo_path="auto"``, each expert's default demonstration (idempotent)."""
+    """Register our env ids and, for ``demo_path="auto"`` and ``"auto:dart<N>"``, each expert's demonstrations (idempotent)."""
     for env_id in EXPERTS:
         register_default_demonstrations(env_id, partial(default_demonstrations, env_id))
     if "PointMazeFourRooms-v0" not in gym.registry:

@@ -29,27 +29,31 @@ def expert_demonstrations(
     return collect_demonstrations(env_id, EXPERTS[env_id], n_episodes, seed, env_kwargs, only_successes, action_noise)
 
 
-def default_demonstration_path(env_id: str) -> Path:
-    """Where the single default demonstration of ``env_id`` is cached (``$SB3_DIPPER_CACHE`` or ~/.cache/sb3-dipper)."""
+def default_demonstration_path(env_id: str, n_episodes: int = 1, action_noise: float = 0.0) -> Path:
+    """Where the scripted demonstrations of ``env_id`` behind ``demo_path="auto"`` (one episode, no noise) and
+    ``"auto:dart<N>"`` are cached (``$SB3_DIPPER_CACHE`` or ~/.cache/sb3-dipper)."""
     cache = Path(os.environ.get("SB3_DIPPER_CACHE", Path.home() / ".cache" / "sb3-dipper"))
-    return cache / "demonstrations" / f"{env_id}.npz"
+    recipe = "" if (n_episodes, action_noise) == (1, 0.0) else f"-{n_episodes}-noise{action_noise:g}"
+    return cache / "demonstrations" / f"{env_id}{recipe}.npz"
 
 
-def default_demonstrations(env_id: str) -> Demonstrations:
-    """The task's single default demonstration: the expert's first successful episode from seed 0, made on first use.
+def default_demonstrations(env_id: str, n_episodes: int = 1, action_noise: float = 0.0) -> Demonstrations:
+    """The task's scripted demonstrations: the expert's first ``n_episodes`` successful episodes from seed 0, executed
+    with ``action_noise`` (DART when above zero), made on first use. By default the single default demonstration.
 
-    The expert and the seeded env are deterministic, so a cached file and a fresh one hold the same episode. The file
-    is written under a temporary name and renamed into place (``Demonstrations.save``), so a process that finds it
-    (parallel tests, zoo workers) never reads half of it.
+    The expert, the seeded env and the seeded noise are deterministic, so a cached file and a fresh one hold the same
+    episodes (those of ``sb3-dipper-demos --env ENV --n-episodes N --action-noise SIGMA``). The file is written under a
+    temporary name and renamed into place (``Demonstrations.save``), so a process that finds it (parallel tests, zoo
+    workers) never reads half of it.
     """
-    path = default_demonstration_path(env_id)
+    path = default_demonstration_path(env_id, n_episodes, action_noise)
     if not path.exists():
-        expert_demonstrations(env_id, n_episodes=1, seed=0).save(path)
+        expert_demonstrations(env_id, n_episodes=n_episodes, seed=0, action_noise=action_noise).save(path)
     try:
         return load_demonstrations(path)
     except ValueError as error:
         raise ValueError(
-            f"{error} This file is the cached default demonstration of {env_id}: delete {path} and it is made again "
+            f"{error} This file is a cached scripted demonstration of {env_id}: delete {path} and it is made again "
             "on next use."
         ) from error
 

@@ -116,8 +116,9 @@ class HIER(HierarchicalAlgorithm):
     :param low_learning_rate: lower learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
     :param low_level_kwargs: other lower ``SAC`` kwargs
-    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory, or
-        ``"auto"`` for the task's single default scripted demonstration; ``None``: none)
+    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
+        ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
+        its scripted expert, beyond the paper; ``None``: none)
     :param n_demos: demonstration episodes used
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
