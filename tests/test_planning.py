@@ -13,12 +13,12 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
-from sb3_dipper import DIPPER, HIER
+from sb3_dipper import DIPPER, HIER, RAPS
 from sb3_dipper.common.hierarchical_policy import SACPolicyLowLevel
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from tests.conftest import short_maze, tiny_model
+from tests.conftest import any_tiny_model, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from zoo_scripts import planner_share
 
@@ -210,9 +210,20 @@ def test_planner_share_sampled_cases_sample_the_levels_as_training_collects(tmp_
         assert set(calls["lower"]) == {lower}, case
 
 
-def test_planner_share_refuses_a_model_that_is_not_a_dipper(tmp_path):
+def test_planner_share_measures_a_baseline_three_ways_and_refuses_a_scripted_lower_level(tmp_path):
+    """A HIER has no planner: as trained, with its higher policy untrained, and its lower level driven by the goal
+    (which the goal case hands to the lower level as its subgoal); RAPS has no learned lower level to measure."""
     run = tmp_path / "hier" / "PointMazeFourRooms-v0_1"
     maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)
     tiny_model(HIER, maze_env).save(run / "PointMazeFourRooms-v0.zip")
-    with pytest.raises(ValueError, match="is a HIER, not a DIPPER"):
-        planner_share.measure(run, "hier", "PointMazeFourRooms-v0", n_episodes=1)
+    _, report = planner_share.measure(run, "hier", "PointMazeFourRooms-v0", n_episodes=1)
+    assert list(report) == ["as_trained", "untrained_policy", "lower_level_alone"]
+    assert all(case["planned_share"] == 0 for case in report.values())
+    model, env = planner_share.trained_run(run, "hier", "PointMazeFourRooms-v0", seed=0)
+    observation = env.reset()
+    subgoals = model.subgoal_space.to_world(model._subgoal_actions(observation["desired_goal"]))
+    np.testing.assert_allclose(subgoals, model.subgoal_space.project(observation["desired_goal"]), atol=1e-5)
+    raps_run = tmp_path / "raps" / "PointMazeFourRooms-v0_1"
+    any_tiny_model(RAPS, maze_env).save(raps_run / "PointMazeFourRooms-v0.zip")
+    with pytest.raises(ValueError, match="is a RAPS, not a hierarchical model with a learned lower level"):
+        planner_share.measure(raps_run, "raps", "PointMazeFourRooms-v0", n_episodes=1)

@@ -19,7 +19,11 @@ with ``VecNormalize`` is evaluated with the observation statistics it trained wi
 
 A DIPPER without the planner (``planning`` ``"off"`` or ``"waypoint"``: the paper's DIPPER, DIPPER-No-V) gets the three
 cases that do not need it: as trained (its policy alone), with the higher policy untrained and with the env's goal as
-every subgoal; whether its success is the preference-trained policy's or the lower level's alone.
+every subgoal; whether its success is the preference-trained policy's or the lower level's alone. So do the baselines
+with a learned lower level (``--algo hier``, ``piper``, ``saga``, ``hac``): whether their trained higher level adds to
+their lower level's success or takes from it.
+
+    python zoo_scripts/planner_share.py runs/p9/VARIANT/seed_0/hier/FrankaKitchenMicrowaveBurner-v0_1 --algo hier
 
 ``--sampled`` adds two cases that act as training collects (without its uniformly random subgoals): ``sampled``, both
 levels sampling their policies, and ``greedy_lower``, the higher level sampling while the lower level acts
@@ -43,7 +47,9 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.dipper import DIPPER
+from sb3_dipper.raps import RAPS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from configs import episode_successes, measure_runs, trained_run
@@ -56,7 +62,7 @@ SAMPLED_CASES = ("sampled", "greedy_lower")
 
 
 def evaluate(
-    model: DIPPER,
+    model: HierarchicalAlgorithm,
     env: VecEnv,
     n_episodes: int,
     goal_as_subgoal: bool = False,
@@ -75,10 +81,11 @@ def evaluate(
 
     def counted(observation, deterministic):  # type: ignore[no-untyped-def]  # the case decides, not predict's flag
         if goal_as_subgoal:
-            return model._planned_actions(observation)
+            return model._subgoal_actions(observation["desired_goal"])
         actions = decide(observation, not sample_higher)
-        decisions["planned"] += int(model.last_planned.sum())
-        decisions["all"] += int(model.last_planned.size)
+        planned = model.last_planned if isinstance(model, DIPPER) else np.zeros(len(actions), dtype=bool)
+        decisions["planned"] += int(planned.sum())
+        decisions["all"] += int(planned.size)
         return actions
 
     model._high_level_actions = counted  # type: ignore[method-assign]
@@ -98,7 +105,7 @@ def case_settings(case: str) -> dict[str, bool]:
     }
 
 
-def reset_higher_policy(model: DIPPER, seed: int) -> None:
+def reset_higher_policy(model: HierarchicalAlgorithm, seed: int) -> None:
     """Every network of the higher policy back to freshly initialised weights (drawn from ``seed``)."""
     th.manual_seed(seed)
     for module in model.policy.modules():
@@ -114,22 +121,27 @@ def measure(
     :data:`SAMPLED_CASES` with ``sampled``) on a fresh copy of the run's model (or of ``model_file``), and the
     primitive steps that model had trained."""
 
-    def fresh_model() -> tuple[DIPPER, VecEnv]:
+    def fresh_model() -> tuple[HierarchicalAlgorithm, VecEnv]:
         model, env = trained_run(run, algo, env_id, seed=20_000, model_file=model_file)
-        if not isinstance(model, DIPPER):
-            raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
+        if not isinstance(model, HierarchicalAlgorithm) or isinstance(model, RAPS):
+            raise ValueError(
+                f"{run}: the model is a {type(model).__name__}, not a hierarchical model with a learned lower level "
+                "(--algo names a DIPPER, HIER, PIPER, SAGA or HAC entry)"
+            )
         return model, env
 
     results: dict[str, dict[str, float]] = {}
     model, env = fresh_model()
     steps = model.num_timesteps
-    cases = (CASES if model.planning == "subgoal" else CASES_WITHOUT_PLANNER) + (SAMPLED_CASES if sampled else ())
+    has_planner = isinstance(model, DIPPER) and model.planning == "subgoal"
+    cases = (CASES if has_planner else CASES_WITHOUT_PLANNER) + (SAMPLED_CASES if sampled else ())
     for case in cases:
         if results:  # every case after the first on a fresh copy: a case changes the model
             model, env = fresh_model()
         if case == "untrained_policy":
             reset_higher_policy(model, seed=0)
-        if case == "policy_alone":
+        if case == "policy_alone":  # only a DIPPER with the planner has this case
+            assert isinstance(model, DIPPER)
             model.subgoal_graph = None
         results[case] = evaluate(model, env, n_episodes, **case_settings(case))
         env.close()
@@ -139,7 +151,7 @@ def measure(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/dipper/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a DIPPER entry)")
+    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a hierarchical entry)")
     parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")

@@ -360,6 +360,13 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
         """Higher-level actions in [-1, 1]^d for a batch of (normalised) observations."""
 
+    def _subgoal_actions(self, goals: np.ndarray) -> np.ndarray:
+        """The higher-level actions whose subgoals are ``goals``, given as the (normalised) observations give them."""
+        assert self.subgoal_space is not None
+        if self.low_normalizer is not None:
+            goals = self.low_normalizer.unnormalize_goal(goals, "desired_goal")
+        return self.subgoal_space.to_unit(self.subgoal_space.project(goals))
+
     def _collecting_high_level_actions(self, observation: DictObs) -> np.ndarray:
         """The higher level's own proposals while collecting (what :meth:`predict` proposes, sampled)."""
         return self._high_level_actions(observation, deterministic=False)

@@ -390,11 +390,7 @@ class DIPPER(HierarchicalAlgorithm):
 
     def _planned_actions(self, planned: DictObs) -> np.ndarray:
         """The higher-level actions whose subgoals are the planned waypoints."""
-        assert self.subgoal_space is not None
-        goals = planned["desired_goal"]
-        if self.low_normalizer is not None:
-            goals = self.low_normalizer.unnormalize_goal(goals, "desired_goal")
-        return self.subgoal_space.to_unit(self.subgoal_space.project(goals))
+        return self._subgoal_actions(planned["desired_goal"])
 
     def _store_option(
         self,
