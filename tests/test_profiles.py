@@ -52,10 +52,10 @@ def test_cpu_profiles_are_cpu_sized_and_paper_files_are_paper_sized(algo):
             assert cpu.get(key) == (expected or paper.get(key)), (algo, env_id, key)
 
 
-# Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", section 25), the CPU
+# Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", sections 25-26), the CPU
 # profile names them; the paper-scale file keeps the paper's one demonstration.
 KITCHEN = "FrankaKitchenMicrowaveBurner-v0"
-MEASURED_DEMONSTRATIONS = {("dipper", KITCHEN): "auto:dart20"}
+MEASURED_DEMONSTRATIONS = {("dipper", KITCHEN): "auto:dart20", ("dipper", "FetchPickAndPlace-v4"): "auto:dart20"}
 
 
 def test_the_kitchen_profile_clones_twenty_dart_episodes_at_the_authors_demonstration_batch(tmp_path, monkeypatch):
@@ -105,7 +105,7 @@ def test_paper_scale_files_weigh_behaviour_cloning_as_the_authors(algo):
 
 
 # Tasks where a run showed the switches beyond the paper help (BENCHMARKS.md, "the paper's tasks on a CPU").
-MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0"}
+MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0", "FetchPickAndPlace-v4"}
 
 
 def test_dipper_switches_are_on_only_where_measured():
