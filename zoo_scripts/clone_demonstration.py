@@ -55,11 +55,13 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 from stable_baselines3.common.torch_layers import create_mlp
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_dipper  # noqa: F401  (registers our env ids)
 from sb3_dipper.common.demonstrations import Demonstrations, load_demonstrations
 from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.common.imitation import DemonstrationBuffer
+from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.envs.demos import default_demonstrations
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -165,6 +167,11 @@ def first_departure(states: np.ndarray, demonstrated: np.ndarray, tolerance: flo
     return int(np.argmax(far)) if far.any() else None
 
 
+def subgoal_space_of(env: gym.Env) -> SubgoalSpace:
+    """The subgoal space the algorithms would train ``env`` with (gymnasium-robotics' own ids declare none)."""
+    return resolve_subgoal_space(DummyVecEnv([lambda: env]))
+
+
 def run_clone(
     clone: Clone,
     env: gym.Env,
@@ -182,7 +189,7 @@ def run_clone(
     reported too; with ``goal_as_subgoal`` every option's subgoal is the episode's desired goal, projected."""
     observation, _ = env.reset(seed=episode_seed)
     driven = subgoals is not None or goal_as_subgoal
-    space = env.unwrapped.subgoal_space if driven else None  # type: ignore[attr-defined]
+    space = subgoal_space_of(env) if driven else None
     if space is not None and goal_as_subgoal:  # the episode's goal is fixed at its reset: one subgoal for every option
         subgoals = space.project(observation["desired_goal"])[None]
     states, reached = [], []
@@ -194,7 +201,7 @@ def run_clone(
         states.append(observation["observation"])
         done = terminated or truncated
         step += 1
-        if space is not None and (step % option_steps == 0 or done):
+        if space is not None and subgoal is not None and (step % option_steps == 0 or done):
             reached.append(float(space.distance(space.project(observation["achieved_goal"]), subgoal) <= space.threshold))
     departure = first_departure(np.array(states), demonstration.next_observations["observation"], tolerance)
     return {
@@ -233,9 +240,7 @@ def clone_rows(
             reference_inputs = goal_conditioned_inputs(demonstrations)
             sample_batch = goal_conditioned_batches(reference_inputs, demonstrations.actions, seed=fit_seed)
         else:
-            space = getattr(env.unwrapped, "subgoal_space", None)
-            if space is None:
-                raise ValueError(f"--option-steps: {env_id} defines no subgoal space (env.unwrapped.subgoal_space)")
+            space = subgoal_space_of(env)
             buffer = DemonstrationBuffer(demonstrations, space, demonstrations.actions)
             sample_batch = subgoal_conditioned_batches(buffer, seed=fit_seed)
             subgoals = oracle_subgoals(env_id, option_steps, space) if driver == "demonstration" else None
