@@ -65,6 +65,15 @@ def test_success_figure_has_a_line_and_a_band_per_algorithm_in_every_panel(logs,
     assert all(path.stat().st_size > 0 for path in written) and len(written) == 2
 
 
+def test_a_long_shared_legend_stays_below_every_panel():
+    curve = (np.array([15_000.0, 30_000.0]), np.array([0.0, 1.0]))
+    panels = {env_id: {f"dipper-variant{index}": [curve] for index in range(40)} for env_id in ("A-v0", "B-v0")}
+    fig = plot.draw_success(panels)
+    fig.canvas.draw()
+    legend_top = fig.legends[0].get_window_extent().y1
+    assert all(legend_top <= ax.get_tightbbox().y0 for ax in fig.axes if ax.get_visible())
+
+
 def test_success_is_the_mean_over_seeds_and_monitor_runs_are_smoothed(logs):
     dipper_runs = plot.find_runs([logs], "dipper", ENVS[0])
     steps, mean, std = plot.aggregate([plot.success_curve(run) for run in dipper_runs])

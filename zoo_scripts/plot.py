@@ -201,8 +201,13 @@ def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
     for ax in axes.flat:
         for handle, text in zip(*ax.get_legend_handles_labels(), strict=True):
             entries.setdefault(text, handle)
-    fig.tight_layout(rect=(0, 0.45 / fig.get_figheight(), 1, 1))  # half an inch for the legend
-    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=max(1, min(len(entries), 6)), frameon=False)
+    columns = max(1, min(len(entries), 6))
+    # The figure grows by the legend's rows (a quarter inch each, and a margin) so that many entries never cover a panel.
+    legend_height = 0.25 * math.ceil(len(entries) / columns) + 0.2
+    width, height = fig.get_size_inches()
+    fig.set_size_inches(width, height + legend_height)
+    fig.tight_layout(rect=(0, legend_height / (height + legend_height), 1, 1))
+    fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=columns, frameon=False)
 
 
 def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
