@@ -23,7 +23,8 @@ sections 8, 11 and 26) and its networks stay alive without normalisation.
 The random pick-and-place learns fast at its profile (twenty DART episodes with the fixed tasks' switches, section 26):
 the deterministic evaluation succeeded in 0.55, 0.65 and 0.50 of 20 episodes at 15k on seeds 0, 1 and 2, and in 0.60,
 0.65 and 0.60 when run again on another installation (the clone of the one demonstration: 0.05), so its check is that
-evaluation at 15k against the untrained model; the test's own run: 0.10 untrained, 0.80 at 15k (96 s).
+evaluation at 15k against the untrained model. The test's own runs: 0.10 untrained and 0.80 at 15k (96 s), and on the
+other installation 0.10 and 0.60 (94 s); the untrained bound leaves room for one more episode that needs no skill.
 
 On the kitchen the profile's lower level clones twenty DART episodes (section 25) and its success comes late (first
 0.45 at 150k-330k), but the clone opens the microwave, the first half of the task, early and fickly: evaluated every
@@ -121,7 +122,7 @@ def test_dipper_solves_the_random_pick_and_place_from_its_dart_demonstrations(re
     trained = float(np.mean(episode_successes(model, env, 20)))
     record_property("evaluation_success", (untrained, trained))
     env.close()
-    assert untrained <= 0.1 and trained >= 0.3, (untrained, trained)
+    assert untrained <= 0.15 and trained >= 0.3, (untrained, trained)
 
 
 def microwave_opening(model, episodes: int) -> float:
