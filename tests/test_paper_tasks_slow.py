@@ -36,11 +36,13 @@ episodes per evaluation, 8 minutes on a shared core) opened it to 0.63, 0.00 and
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import VecNormalize
+from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_dipper.common.low_level import sac_dead_units
 
@@ -82,12 +84,18 @@ def test_dipper_starts_solving_the_task_in_training(env_id, least, record_proper
     assert final >= least and final > early.success, (early.success, final)
 
 
-def demonstrated_subgoals_reached(model, env_id: str) -> float:
-    """The share of the demonstration's option-end subgoals the lower level reaches from the demonstration's start."""
-    env = make_env(env_id, load_entry("dipper", env_id), seed=0, n_envs=1)
+def evaluation_env(model, env_id: str, seed: int) -> VecEnv:
+    """One env of the task's ``dipper`` entry, scaled by the model's observation statistics (frozen) where it has any."""
+    env = make_env(env_id, load_entry("dipper", env_id), seed=seed, n_envs=1)
     training_env = model.get_vec_normalize_env()
     if training_env is not None:
         env.obs_rms, env.training = training_env.obs_rms, False
+    return env
+
+
+def demonstrated_subgoals_reached(model, env_id: str) -> float:
+    """The share of the demonstration's option-end subgoals the lower level reaches from the demonstration's start."""
+    env = evaluation_env(model, env_id, seed=0)
     reached = run_episodes(model, env, 1, oracle_subgoals(env_id, model.option_steps, model.subgoal_space))["options_reached"]
     env.close()
     return reached
@@ -116,7 +124,7 @@ def test_normalised_inputs_keep_the_random_maze_lower_actor_alive(record_propert
 @pytest.mark.slow
 def test_dipper_solves_the_random_pick_and_place_from_its_dart_demonstrations(record_property):
     model, _, _ = make_model("dipper", RANDOM_PICK_AND_PLACE, seed=0)
-    env = make_env(RANDOM_PICK_AND_PLACE, load_entry("dipper", RANDOM_PICK_AND_PLACE), seed=1000, n_envs=1)
+    env = evaluation_env(model, RANDOM_PICK_AND_PLACE, seed=1000)
     untrained = float(np.mean(episode_successes(model, env, 20)))
     model.learn(15_000)
     trained = float(np.mean(episode_successes(model, env, 20)))
@@ -127,21 +135,19 @@ def test_dipper_solves_the_random_pick_and_place_from_its_dart_demonstrations(re
 
 def microwave_opening(model, episodes: int) -> float:
     """The mean over deterministic episodes of how far the microwave door opened (the hinge angle, the goal's 0.75)."""
-    env = make_env(KITCHEN, load_entry("dipper", KITCHEN), seed=1000, n_envs=1)
-    training_env = model.get_vec_normalize_env()
-    if training_env is not None:
-        env.obs_rms, env.training = training_env.obs_rms, False
-    openings = []
-    for _ in range(episodes):
-        observation, state, episode_start, opening, done = env.reset(), None, np.ones(1, dtype=bool), 0.0, False
-        while not done:
-            action, state = model.predict(observation, state, episode_start, deterministic=True)
-            observation, _, episode_start, _ = env.step(action)
-            done = bool(episode_start[0])
-            # The hinge opens towards negative angles; the done step's observation is the next episode's first.
-            if not done:
-                opening = max(opening, -float(env.get_original_obs()["achieved_goal"][0, 0]))
-        openings.append(opening)
+    env = evaluation_env(model, KITCHEN, seed=1000)
+    openings: list[float] = []
+    opening = 0.0
+
+    def record(local_vars: dict[str, Any], _globals: dict[str, Any]) -> None:
+        nonlocal opening
+        if local_vars["done"]:  # the done step's observation is already the next episode's first
+            openings.append(opening)
+            opening = 0.0
+        else:  # the hinge opens towards negative angles
+            opening = max(opening, -float(env.get_original_obs()["achieved_goal"][0, 0]))
+
+    evaluate_policy(model, env, n_eval_episodes=episodes, deterministic=True, callback=record)
     env.close()
     return float(np.mean(openings))
 
