@@ -395,11 +395,14 @@ def test_ray_runs(tmp_path, ray_head):
     assert (tmp_path / "learning.png").exists()
 
 
+def profiles_args(**changes):
+    """``benchmark.py profiles``'s arguments: one chunk of 100 steps of SAC+HER on the test task, nothing written."""
+    defaults = dict(envs=[ENV_ID], algos=["sac"], steps=100, repeats=1, name="profiles", write=False, fused_adam=False)
+    return argparse.Namespace(**{**defaults, "variant": [], **changes})
+
+
 def test_profiles_measures_training_and_env_rates(capsys):
-    args = argparse.Namespace(
-        envs=[ENV_ID], algos=["dipper", "sac"], steps=200, repeats=1, name="profiles", write=False, fused_adam=False
-    )
-    benchmark.run_profiles(args)
+    benchmark.run_profiles(profiles_args(algos=["dipper", "sac"], steps=200))
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
     assert [row.split(" | ")[1] for row in rows] == ["DIPPER", "SAC+HER"]
     for row in rows:
@@ -419,10 +422,27 @@ def test_fused_adam_profiles_fuse_every_level_s_optimizers(algo):
     assert model.policy_kwargs["net_arch"] == profile_nets  # the fused copy keeps the profile's networks
 
 
+def test_profiles_measure_each_variant_beside_the_profile(capsys):
+    benchmark.run_profiles(profiles_args(variant=[["b64", "batch_size=64", "gradient_steps=2"]]))
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
+    assert [row.split(" | ")[1] for row in rows] == ["SAC+HER", "SAC+HER (b64)"]
+
+
+def test_profile_variants_read_literals_and_refuse_what_is_not_one():
+    variants = [["b128", "batch_size=128", "policy_kwargs={'net_arch': [64, 64]}"], ["n4", "n_envs=4"]]
+    assert benchmark.profile_variants(variants) == {
+        "b128": {"batch_size": 128, "policy_kwargs": {"net_arch": [64, 64]}},
+        "n4": {"n_envs": 4},
+    }
+    with pytest.raises(ValueError, match="not a Python literal"):
+        benchmark.profile_variants([["small", "policy_kwargs=dict(net_arch=[64])"]])
+    with pytest.raises(ValueError, match="takes a name, then key=value"):
+        benchmark.profile_variants([["batch_size=128"]])
+    with pytest.raises(ValueError, match="takes key=value after its name"):
+        benchmark.profile_variants([["b128", "batch_size"]])
+
+
 def test_profiles_measure_the_fused_adam_copies_beside_the_profiles(capsys):
-    args = argparse.Namespace(
-        envs=[ENV_ID], algos=["sac"], steps=100, repeats=1, name="profiles", write=False, fused_adam=True
-    )
-    benchmark.run_profiles(args)
+    benchmark.run_profiles(profiles_args(fused_adam=True))
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
     assert [row.split(" | ")[1] for row in rows] == ["SAC+HER", "SAC+HER (fused)"]

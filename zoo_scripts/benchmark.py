@@ -3,6 +3,7 @@
     python zoo_scripts/benchmark.py throughput                      # DIPPER/HIER seconds per step vs SB3 SAC+HER
     python zoo_scripts/benchmark.py profiles --write                # steps/s at the paper tasks' CPU profiles
     python zoo_scripts/benchmark.py profiles --envs FetchPushFixed-v0 --fused-adam   # and with fused Adam optimizers
+    python zoo_scripts/benchmark.py profiles --envs FetchPush-v4 --variant b128 batch_size=128   # and a cheaper copy
     python zoo_scripts/benchmark.py updates                         # ms per lower/higher update vs SB3's SAC update
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
     python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set "planning='off'" --name ablations
@@ -276,14 +277,41 @@ def fused_adam_overrides(algo: str, env_id: str) -> dict[str, Any]:
     return overrides
 
 
+def profile_variants(variants: list[list[str]]) -> dict[str, dict[str, Any]]:
+    """``--variant NAME KEY=VALUE ...`` of ``profiles`` as ``{NAME: {KEY: value}}``, the values Python literals.
+
+    :param variants: one list per ``--variant``: its name, then its assignments
+    """
+    parsed: dict[str, dict[str, Any]] = {}
+    for name, *assignments in variants:
+        if "=" in name or not assignments:
+            raise ValueError(f"--variant takes a name, then key=value (e.g. --variant b128 batch_size=128), got {name!r}")
+        overrides = {}
+        for assignment in assignments:
+            key, separator, value = assignment.partition("=")
+            try:
+                overrides[key] = ast.literal_eval(value) if separator and key else None
+            except (ValueError, SyntaxError):
+                raise ValueError(
+                    f"--variant {name} {assignment}: {value!r} is not a Python literal "
+                    "(a number, string in quotes, list or dict: policy_kwargs=\"{'net_arch': [64, 64]}\")"
+                ) from None
+            if not separator or not key:
+                raise ValueError(f"--variant {name} takes key=value after its name, got {assignment!r}")
+        parsed[name] = overrides
+    return parsed
+
+
 def run_profiles(args: argparse.Namespace) -> None:
     """Training steps per second of each algorithm at each task's CPU profile, beside the env's own step rate.
 
     The models of one task are warmed up past ``learning_starts``, then trained in interleaved chunks of
     ``--steps`` primitive steps (the median chunk counts), in this one process, so the ratios share the machine's state.
-    With ``--fused-adam`` each algorithm is measured a second time, as ``<algo>-fused``, with fused Adam optimizers.
+    With ``--fused-adam`` each algorithm is measured a second time, as ``<algo>-fused``, with fused Adam optimizers;
+    each ``--variant NAME KEY=VALUE ...`` measures it once more, as ``<algo>-NAME``, with those hyperparameters changed.
     """
     th.set_num_threads(torch_threads())
+    variants = profile_variants(args.variant)
     rows, records = [], []
     for env_id in args.envs:
         models = {algo: make_model(algo, env_id, seed=0)[0] for algo in args.algos}
@@ -291,6 +319,9 @@ def run_profiles(args: argparse.Namespace) -> None:
             for algo in args.algos:
                 overrides = fused_adam_overrides(algo, env_id)
                 models[f"{algo}-{FUSED_ADAM}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
+        for name, overrides in variants.items():
+            for algo in args.algos:
+                models[f"{algo}-{name}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
         n_envs = models[args.algos[0]].n_envs
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
@@ -302,7 +333,7 @@ def run_profiles(args: argparse.Namespace) -> None:
             versus_sac = f"{rate / baseline:.2f}" if baseline else "-"
             ratios = f"{rate / env_rate:.2f} | {versus_sac}"
             rows.append(f"| `{env_id}` | {label(algo)} | {rate:.0f} | {env_rate:.0f} | {ratios} |")
-            records.append(f"{env_id},{algo},{n_envs},{rate:.2f},{env_rate:.2f}")
+            records.append(f"{env_id},{algo},{models[algo].n_envs},{rate:.2f},{env_rate:.2f}")
         print(rows[-len(rates) :], flush=True)
     csv = RESULTS_DIR / f"{args.name}.csv"
     body = (
@@ -776,6 +807,14 @@ def main() -> None:
     profiles.add_argument("--write", action="store_true", help="write the section of BENCHMARKS.md and the CSV")
     profiles.add_argument(
         "--fused-adam", action="store_true", help="also measure each algorithm with fused Adam optimizers (<algo>-fused)"
+    )
+    profiles.add_argument(
+        "--variant",
+        nargs="+",
+        action="append",
+        default=[],
+        metavar="NAME KEY=VALUE",
+        help="also measure each algorithm with these hyperparameters as <algo>-NAME (repeatable; values are literals)",
     )
     updates = commands.add_parser("updates", help="ms per lower and higher training update, vs SB3's SAC update")
     updates.add_argument("--env", default="FetchPickAndPlaceFixed-v0")
