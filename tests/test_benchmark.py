@@ -426,6 +426,17 @@ def test_profiles_measure_each_variant_beside_the_profile(capsys):
     benchmark.run_profiles(profiles_args(variant=[["b64", "batch_size=64", "gradient_steps=2"]]))
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
     assert [row.split(" | ")[1] for row in rows] == ["SAC+HER", "SAC+HER (b64)"]
+    with pytest.raises(ValueError, match="none of sac takes bc_coef"):
+        benchmark.run_profiles(profiles_args(variant=[["bc", "bc_coef=1.0"]]))
+
+
+def test_a_variant_changes_only_what_it_names_and_skips_algorithms_without_the_keyword():
+    fused = {"low_policy_kwargs": {"optimizer_kwargs": {"fused": True}}, "n_envs": 4}
+    overrides = benchmark.variant_overrides("dipper", ENV_ID, "n4-fused", fused)
+    entry = benchmark.load_entry("dipper", ENV_ID)
+    assert overrides == {"low_policy_kwargs": {**entry["low_policy_kwargs"], "optimizer_kwargs": {"fused": True}}, "n_envs": 4}
+    assert benchmark.variant_overrides("sac", ENV_ID, "n4-fused", fused) is None
+    assert benchmark.variant_overrides("sac", ENV_ID, "n4", {"n_envs": 4}) == {"n_envs": 4}
 
 
 def test_profile_variants_read_literals_and_refuse_what_is_not_one():

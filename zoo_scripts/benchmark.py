@@ -108,7 +108,7 @@ import torch as th
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plot
-from configs import ALGORITHMS, load_entry, make_env, make_model, torch_threads
+from configs import ALGORITHMS, ZOO_KEYS, load_entry, make_env, make_model, torch_threads
 from plot import LABELS, label
 
 from sb3_dipper.common.files import write_bytes_atomically
@@ -302,13 +302,31 @@ def profile_variants(variants: list[list[str]]) -> dict[str, dict[str, Any]]:
     return parsed
 
 
+def variant_overrides(algo: str, env_id: str, name: str, changes: dict[str, Any]) -> dict[str, Any] | None:
+    """The overrides of ``--variant NAME`` for one algorithm's entry, or None where the algorithm has no such keyword.
+
+    A dict value updates the entry's dict (``policy_kwargs={'optimizer_kwargs': {'fused': True}}`` keeps the entry's
+    ``net_arch``), so a variant changes only what it names; a variant of a lower level's keywords
+    (``low_policy_kwargs``, ``bc_coef``) is skipped for SAC+HER, which has none.
+    """
+    keywords = set(inspect.signature(ALGORITHMS[algo]).parameters) | set(ZOO_KEYS)
+    if not set(changes) <= keywords:
+        return None
+    entry = load_entry(algo, env_id)
+    return {
+        key: {**entry[key], **value} if isinstance(value, dict) and isinstance(entry.get(key), dict) else value
+        for key, value in changes.items()
+    }
+
+
 def run_profiles(args: argparse.Namespace) -> None:
     """Training steps per second of each algorithm at each task's CPU profile, beside the env's own step rate.
 
     The models of one task are warmed up past ``learning_starts``, then trained in interleaved chunks of
     ``--steps`` primitive steps (the median chunk counts), in this one process, so the ratios share the machine's state.
     With ``--fused-adam`` each algorithm is measured a second time, as ``<algo>-fused``, with fused Adam optimizers;
-    each ``--variant NAME KEY=VALUE ...`` measures it once more, as ``<algo>-NAME``, with those hyperparameters changed.
+    each ``--variant NAME KEY=VALUE ...`` measures it once more, as ``<algo>-NAME``, with those hyperparameters changed
+    (:func:`variant_overrides`).
     """
     th.set_num_threads(torch_threads())
     variants = profile_variants(args.variant)
@@ -319,9 +337,13 @@ def run_profiles(args: argparse.Namespace) -> None:
             for algo in args.algos:
                 overrides = fused_adam_overrides(algo, env_id)
                 models[f"{algo}-{FUSED_ADAM}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
-        for name, overrides in variants.items():
+        for name, changes in variants.items():
             for algo in args.algos:
-                models[f"{algo}-{name}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
+                variant = variant_overrides(algo, env_id, name, changes)
+                if variant is not None:
+                    models[f"{algo}-{name}"] = make_model(algo, env_id, seed=0, overrides=variant)[0]
+            if not any(f"{algo}-{name}" in models for algo in args.algos):
+                raise ValueError(f"--variant {name}: none of {', '.join(args.algos)} takes {', '.join(sorted(changes))}")
         n_envs = models[args.algos[0]].n_envs
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
@@ -814,7 +836,8 @@ def main() -> None:
         action="append",
         default=[],
         metavar="NAME KEY=VALUE",
-        help="also measure each algorithm with these hyperparameters as <algo>-NAME (repeatable; values are literals)",
+        help="also measure each algorithm with these hyperparameters as <algo>-NAME (repeatable; values are literals, "
+        "a dict updates the entry's dict)",
     )
     updates = commands.add_parser("updates", help="ms per lower and higher training update, vs SB3's SAC update")
     updates.add_argument("--env", default="FetchPickAndPlaceFixed-v0")
