@@ -4,6 +4,7 @@ the per-task report reads the runs with plot.py, BENCHMARKS.md is written only w
 import argparse
 import json
 import os
+import shlex
 import shutil
 import signal
 import socket
@@ -437,6 +438,14 @@ def test_a_variant_changes_only_what_it_names_and_skips_algorithms_without_the_k
     assert overrides == {"low_policy_kwargs": {**entry["low_policy_kwargs"], "optimizer_kwargs": {"fused": True}}, "n_envs": 4}
     assert benchmark.variant_overrides("sac", ENV_ID, "n4-fused", fused) is None
     assert benchmark.variant_overrides("sac", ENV_ID, "n4", {"n_envs": 4}) == {"n_envs": 4}
+
+
+def test_a_stamped_command_reruns_with_the_arguments_it_ran_with():
+    arguments = ["learning", "--set", "planning='off'", "policy_kwargs={'net_arch': [64, 64]}", "--seeds", "0"]
+    command = benchmark.command_line("benchmark.py", arguments)
+    assert shlex.split(command) == ["python", "zoo_scripts/benchmark.py", *arguments]
+    plain = benchmark.command_line("benchmark.py", ["profiles", "--write"])
+    assert plain == "python zoo_scripts/benchmark.py profiles --write"  # nothing quoted that needs no quotes
 
 
 def test_profile_variants_read_literals_and_refuse_what_is_not_one():

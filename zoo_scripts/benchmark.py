@@ -89,6 +89,7 @@ import json
 import os
 import platform
 import random
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -173,6 +174,12 @@ def machine() -> str:
     return f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, torch {th.__version__}, no GPU"
 
 
+def command_line(script: str, arguments: list[str]) -> str:
+    """The shell command that runs ``zoo_scripts/<script>`` with ``arguments``, each quoted where a shell would split or
+    read it (``--set "planning='off'"``), so a stamped command reruns as it ran."""
+    return shlex.join(["python", f"zoo_scripts/{script}", *arguments])
+
+
 def write_section(name: str, body: str, command: str, path: Path = BENCHMARKS_MD) -> None:
     """Replace (or append) the ``name`` section of ``path`` (BENCHMARKS.md), stamped with command, machine and date."""
     start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
@@ -241,7 +248,7 @@ def run_throughput(args: argparse.Namespace) -> None:
         f"interleaved chunks of {args.steps} steps after warm-up, measured in one process.\n\n"
         "| algorithm | ms per step | ratio to SAC+HER |\n|---|---|---|\n" + "\n".join(rows)
     )
-    write_section("throughput", body, "python zoo_scripts/benchmark.py throughput " + " ".join(sys.argv[2:]))
+    write_section("throughput", body, command_line("benchmark.py", sys.argv[1:]))
     print(body)
 
 
@@ -369,7 +376,7 @@ def run_profiles(args: argparse.Namespace) -> None:
     if args.write:
         header = "env,algo,n_envs,train_steps_per_second,env_steps_per_second"
         write_bytes_atomically(csv, "\n".join([header, *records, ""]).encode())
-        write_section(args.name, body, "python zoo_scripts/benchmark.py profiles " + " ".join(sys.argv[2:]))
+        write_section(args.name, body, command_line("benchmark.py", sys.argv[1:]))
     print(body)
 
 
@@ -804,7 +811,7 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
     if args.write:
         markdown = Path(args.benchmarks_md or BENCHMARKS_MD)
         image = f"![success curves]({os.path.relpath(figure, markdown.resolve().parent)})"
-        command = "python zoo_scripts/benchmark.py learning " + " ".join(sys.argv[2:])
+        command = command_line("benchmark.py", sys.argv[1:])
         write_section(args.name, f"{description}\n\n{tables_text}\n\n{image}", command, markdown)
         # The CSV behind the table goes next to its figure, to be committed with it.
         shutil.copyfile(out / f"{args.name}.csv", figure.with_suffix(".csv"))

@@ -23,7 +23,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmark import REPO, write_section
+from benchmark import REPO, command_line, write_section
 from configs import make_model
 
 import sb3_dipper  # noqa: F401  (registers our env ids)
@@ -141,7 +141,7 @@ def main() -> None:
         f"{args.expert_episodes - 1}, failures counted). One torch thread.\n\n"
         "| task | env steps/s | DIPPER training steps/s | expert success | frame |\n|---|---|---|---|---|\n" + "\n".join(rows)
     )
-    write_section("envs", body, "python zoo_scripts/benchmark_envs.py " + " ".join(sys.argv[1:]))
+    write_section("envs", body, command_line("benchmark_envs.py", sys.argv[1:]))
     print(body)
 
 
