@@ -95,6 +95,15 @@ def test_the_command_writes_one_csv_row_per_episode(tmp_path, capsys):
     assert not list(tmp_path.glob("*.tmp*"))
 
 
+def test_first_episode_seed_runs_episodes_the_demonstrations_did_not_start_from(tmp_path):
+    out = tmp_path / "clone.csv"
+    arguments = ["FetchPush-v4", "--net-arch", "16", "--fit-steps", "5", "--episodes", "2", "--csv", str(out)]
+    main([*arguments, "--first-episode-seed", "20000"])
+    assert [row["episode_seed"] for row in csv.DictReader(out.open())] == ["20000", "20001"]
+    with pytest.raises(SystemExit):
+        main([*arguments, "--first-episode-seed", "-1"])
+
+
 def test_each_fit_seed_is_a_clone_of_its_own(tmp_path, capsys):
     out = tmp_path / "clone.csv"
     main(

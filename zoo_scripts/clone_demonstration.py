@@ -11,6 +11,14 @@ by trial and error. Per episode the script reports the success and the first ste
 demonstration's (largest difference of the ``observation`` vectors above ``--tolerance``): the moment compounding
 errors take the clone off the demonstrated path. Episode seed 0 starts where the demonstration started.
 
+The demonstrations are the expert's episodes from seed 0 on (``sb3-dipper-demos``), so on a task with random starts
+and goals the episodes ``0 .. --episodes - 1`` replay the demonstrated ones: they measure whether the clone reproduces
+its demonstrations. ``--first-episode-seed 20000`` runs episodes no demonstration saw, the seeds
+``planner_share.py`` evaluates a trained run on, which is what a trained lower level's success compares with:
+
+    python zoo_scripts/clone_demonstration.py FetchPush-v4 --demo-path push-dart20.npz --n-demos 20 --option-steps 7 \
+        --drive goal --episodes 20 --first-episode-seed 20000
+
 ``--demo-path`` clones the first ``--n-demos`` episodes of a demonstration file instead (``sb3-dipper-demos``; with
 ``--action-noise`` it writes DART episodes, whose states include the expert's corrections of its own drift):
 
@@ -224,9 +232,11 @@ def clone_rows(
     fit_seed: int = 0,
     driver: str = "demonstration",
     batch_size: int = 128,
+    first_episode_seed: int = 0,
 ) -> list[dict]:
     """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
-    and run it for episode seeds ``0 .. episodes - 1``; with ``option_steps``, clone and drive it as a lower level
+    and run it for episode seeds ``first_episode_seed .. first_episode_seed + episodes - 1``; with ``option_steps``,
+    clone and drive it as a lower level
     (subgoal-conditioned, driven every ``option_steps`` steps by the default demonstration's subgoals, or with
     ``driver="goal"`` by the goal). ``fit_seed`` seeds the network's initialisation and the batches of
     ``batch_size`` demonstration steps."""
@@ -270,7 +280,7 @@ def clone_rows(
                     goal_as_subgoal=option_steps is not None and driver == "goal",
                 ),
             }
-            for seed in range(episodes)
+            for seed in range(first_episode_seed, first_episode_seed + episodes)
         ]
     finally:
         env.close()
@@ -305,6 +315,12 @@ def main(argv: list[str] | None = None) -> None:
         help="demonstration steps per Adam step (a lower level's cloning term sees demo_share x batch_size of them)",
     )
     parser.add_argument("--episodes", type=int, default=8)
+    parser.add_argument(
+        "--first-episode-seed",
+        type=int,
+        default=0,
+        help="the first episode's seed (the demonstrations are the episodes from seed 0 on: 20000 runs unseen ones)",
+    )
     parser.add_argument("--tolerance", type=float, default=0.05, help="largest observation difference still on the path")
     parser.add_argument("--demo-path", type=Path, help="an npz file of sb3-dipper-demos (default: the task's default one)")
     parser.add_argument(
@@ -328,6 +344,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--csv", type=Path, help="also write one row per episode here")
     args = parser.parse_args(argv)
     option_steps = 1 if args.option_steps is None else args.option_steps
+    if args.first_episode_seed < 0:
+        parser.error("--first-episode-seed must be at least 0 (a seed of env.reset)")
     if min(args.fit_steps, args.batch_size, args.episodes, *args.n_demos, option_steps) < 1:
         parser.error("--fit-steps, --batch-size, --episodes, --n-demos and --option-steps must be at least 1")
     if args.drive != "demonstration" and args.option_steps is None:
@@ -351,6 +369,7 @@ def main(argv: list[str] | None = None) -> None:
                     fit_seed,
                     args.drive,
                     args.batch_size,
+                    args.first_episode_seed,
                 )
                 print(summary(env_id, env_rows, args))
                 rows += env_rows
