@@ -296,15 +296,15 @@ def profile_variants(variants: list[list[str]]) -> dict[str, dict[str, Any]]:
         overrides = {}
         for assignment in assignments:
             key, separator, value = assignment.partition("=")
+            if not separator or not key:
+                raise ValueError(f"--variant {name} takes key=value after its name, got {assignment!r}")
             try:
-                overrides[key] = ast.literal_eval(value) if separator and key else None
+                overrides[key] = ast.literal_eval(value)
             except (ValueError, SyntaxError):
                 raise ValueError(
                     f"--variant {name} {assignment}: {value!r} is not a Python literal "
                     "(a number, string in quotes, list or dict: policy_kwargs=\"{'net_arch': [64, 64]}\")"
                 ) from None
-            if not separator or not key:
-                raise ValueError(f"--variant {name} takes key=value after its name, got {assignment!r}")
         parsed[name] = overrides
     return parsed
 

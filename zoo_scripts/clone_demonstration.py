@@ -236,10 +236,9 @@ def clone_rows(
 ) -> list[dict]:
     """Fit a clone of the first ``n_demos`` episodes of ``demo_path`` (default: ``env_id``'s default demonstration)
     and run it for episode seeds ``first_episode_seed .. first_episode_seed + episodes - 1``; with ``option_steps``,
-    clone and drive it as a lower level
-    (subgoal-conditioned, driven every ``option_steps`` steps by the default demonstration's subgoals, or with
-    ``driver="goal"`` by the goal). ``fit_seed`` seeds the network's initialisation and the batches of
-    ``batch_size`` demonstration steps."""
+    clone and drive it as a lower level (subgoal-conditioned, driven every ``option_steps`` steps by the default
+    demonstration's subgoals, or with ``driver="goal"`` by the goal). ``fit_seed`` seeds the network's initialisation
+    and the batches of ``batch_size`` demonstration steps."""
     demonstrations = default_demonstrations(env_id) if demo_path is None else load_demonstrations(demo_path)
     demonstrations = demonstrations.first_episodes(n_demos)
     env = gym.make(env_id)
