@@ -309,8 +309,8 @@ def profile_variants(variants: list[list[str]]) -> dict[str, dict[str, Any]]:
     return parsed
 
 
-def variant_overrides(algo: str, env_id: str, name: str, changes: dict[str, Any]) -> dict[str, Any] | None:
-    """The overrides of ``--variant NAME`` for one algorithm's entry, or None where the algorithm has no such keyword.
+def variant_overrides(algo: str, env_id: str, changes: dict[str, Any]) -> dict[str, Any] | None:
+    """One ``--variant``'s ``changes`` as overrides of an algorithm's entry, or None where the algorithm lacks a keyword.
 
     A dict value updates the entry's dict (``policy_kwargs={'optimizer_kwargs': {'fused': True}}`` keeps the entry's
     ``net_arch``), so a variant changes only what it names; a variant of a lower level's keywords
@@ -346,7 +346,7 @@ def run_profiles(args: argparse.Namespace) -> None:
                 models[f"{algo}-{FUSED_ADAM}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
         for name, changes in variants.items():
             for algo in args.algos:
-                variant = variant_overrides(algo, env_id, name, changes)
+                variant = variant_overrides(algo, env_id, changes)
                 if variant is not None:
                     models[f"{algo}-{name}"] = make_model(algo, env_id, seed=0, overrides=variant)[0]
             if not any(f"{algo}-{name}" in models for algo in args.algos):
