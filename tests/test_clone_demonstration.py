@@ -57,10 +57,10 @@ def test_a_clone_trained_as_a_lower_level_follows_the_demonstrations_subgoals():
     reference, _ = sample_batch(1000)
     subgoals = oracle_subgoals("FetchPickAndPlaceFixed-v0", 7, space)
     untrained = fit_clone(sample_batch, reference, 4, [64, 64], steps=0)
-    driven = run_clone(untrained, env, demonstration, 0, 0.05, subgoals, option_steps=7)
+    driven = run_clone(untrained, env, demonstration, 0, 0.05, subgoals, option_steps=7, space=space)
     assert driven["success"] == 0.0 and float(driven["options_reached"]) < 0.5
     trained = fit_clone(sample_batch, reference, 4, [64, 64], steps=1500)
-    driven = run_clone(trained, env, demonstration, 0, 0.05, subgoals, option_steps=7)
+    driven = run_clone(trained, env, demonstration, 0, 0.05, subgoals, option_steps=7, space=space)
     env.close()
     assert driven["success"] == 1.0 and float(driven["options_reached"]) == 1.0  # all 8 options, the last at step 50
 
@@ -77,10 +77,12 @@ def test_a_clone_driven_by_the_goal_sees_the_projected_goal_as_every_subgoal():
 
     demonstration = default_demonstrations("FetchPushFixed-v0").first_episodes(1)
     goal = space.project(env.reset(seed=3)[0]["desired_goal"])
-    episode = run_clone(Recorder(), env, demonstration, 3, 0.05, option_steps=7, goal_as_subgoal=True)
+    episode = run_clone(Recorder(), env, demonstration, 3, 0.05, option_steps=7, goal_as_subgoal=True, space=space)
     env.close()
     assert len(seen) == 50 and all(np.array_equal(subgoal, goal) for subgoal in seen)
     assert episode["options_reached"] == "0.0000"  # the arm at rest never brings the block to the goal
+    with pytest.raises(ValueError, match="needs their space"):
+        run_clone(Recorder(), env, demonstration, 3, 0.05, option_steps=7, goal_as_subgoal=True)
 
 
 def test_the_command_writes_one_csv_row_per_episode(tmp_path, capsys):

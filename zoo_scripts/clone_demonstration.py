@@ -189,15 +189,20 @@ def run_clone(
     subgoals: np.ndarray | None = None,
     option_steps: int = 1,
     goal_as_subgoal: bool = False,
+    space: SubgoalSpace | None = None,
 ) -> dict:
     """One closed-loop episode of the clone from ``env.reset(seed=episode_seed)``: its success (``is_success`` at the
     last step, as the benchmarks evaluate), departure step from the demonstration's states and length. With
     ``subgoals`` (one per option of ``option_steps`` steps) the clone sees the option's subgoal in place of the
     desired goal, as a lower level does, and the share of options that ended within the subgoal threshold is
-    reported too; with ``goal_as_subgoal`` every option's subgoal is the episode's desired goal, projected."""
-    observation, _ = env.reset(seed=episode_seed)
+    reported too; with ``goal_as_subgoal`` every option's subgoal is the episode's desired goal, projected.
+
+    :param space: the subgoal space the clone was fitted with (:func:`subgoal_space_of`), needed when it is driven
+    """
     driven = subgoals is not None or goal_as_subgoal
-    space = subgoal_space_of(env) if driven else None
+    if driven and space is None:
+        raise ValueError("run_clone: a clone driven by subgoals needs their space (space=subgoal_space_of(env))")
+    observation, _ = env.reset(seed=episode_seed)
     if space is not None and goal_as_subgoal:  # the episode's goal is fixed at its reset: one subgoal for every option
         subgoals = space.project(observation["desired_goal"])[None]
     states, reached = [], []
@@ -244,7 +249,7 @@ def clone_rows(
     env = gym.make(env_id)
     try:
         demonstrations.check_spaces(env.observation_space, env.action_space)
-        subgoals = None
+        subgoals, space = None, None
         if option_steps is None:
             reference_inputs = goal_conditioned_inputs(demonstrations)
             sample_batch = goal_conditioned_batches(reference_inputs, demonstrations.actions, seed=fit_seed)
@@ -277,6 +282,7 @@ def clone_rows(
                     subgoals,
                     option_steps or 1,
                     goal_as_subgoal=option_steps is not None and driver == "goal",
+                    space=space,
                 ),
             }
             for seed in range(first_episode_seed, first_episode_seed + episodes)
