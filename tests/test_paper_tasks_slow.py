@@ -19,14 +19,17 @@ a shared core). On the random maze no learning signal has been measured at a CPU
 the fix itself: the lower actor keeps its units alive (unnormalised, 97 % of one layer was dead at 5k and 10k; the
 test's own run, normalised, 54 % at 10k). Since section 28 the mazes' profile has [64, 64] lower networks; the tests'
 own runs there: all but two of the 15 subgoals (0.87) at 15k, and 3 % of the lower actor dead at 10k (one minute for
-both). The random push has no check: nothing was learnt there (BENCHMARKS.md,
-sections 8, 11 and 26) and its networks stay alive without normalisation.
+both). The random push's networks stay alive without normalisation.
 
 The random pick-and-place learns fast at its profile (twenty DART episodes with the fixed tasks' switches, section 26):
 the deterministic evaluation succeeded in 0.55, 0.65 and 0.50 of 20 episodes at 15k on seeds 0, 1 and 2, and in 0.60,
 0.65 and 0.60 when run again on another installation (the clone of the one demonstration: 0.05), so its check is that
 evaluation at 15k against the untrained model. The test's own runs: 0.10 untrained and 0.80 at 15k (96 s), and on the
 other installation 0.10 and 0.60 (94 s); the untrained bound leaves room for one more episode that needs no skill.
+The random push learns at its profile from 200 DART episodes (section 29; twenty did not teach it): the evaluation
+succeeded in 0.20 and 0.25 at 15k and 0.45 and 0.35 at 30k on seeds 0 and 1, so its check is 30k against the untrained
+model with a lower bound; the test's own run: 0.00 untrained and 0.40 at 30k (13 minutes on a core shared with two
+training runs).
 
 On the kitchen the profile's lower level clones twenty DART episodes (section 25) and its success comes late (first
 0.45 at 150k-330k), but the clone opens the microwave, the first half of the task, early and fickly: evaluated every
@@ -57,6 +60,7 @@ PUSH = "FetchPushFixed-v0"
 MAZE = "FetchFourRoomMazeFixed-v0"
 RANDOM_MAZE = "FetchFourRoomMaze-v0"
 RANDOM_PICK_AND_PLACE = "FetchPickAndPlace-v4"
+RANDOM_PUSH = "FetchPush-v4"
 KITCHEN = "FrankaKitchenMicrowaveBurner-v0"
 
 
@@ -124,15 +128,16 @@ def test_normalised_inputs_keep_the_random_maze_lower_actor_alive(record_propert
 
 
 @pytest.mark.slow
-def test_dipper_solves_the_random_pick_and_place_from_its_dart_demonstrations(record_property):
-    model, _, _ = make_model("dipper", RANDOM_PICK_AND_PLACE, seed=0)
-    env = evaluation_env(model, RANDOM_PICK_AND_PLACE, seed=1000)
+@pytest.mark.parametrize(("env_id", "steps", "least"), [(RANDOM_PICK_AND_PLACE, 15_000, 0.3), (RANDOM_PUSH, 30_000, 0.25)])
+def test_dipper_solves_the_random_task_from_its_dart_demonstrations(env_id, steps, least, record_property):
+    model, _, _ = make_model("dipper", env_id, seed=0)
+    env = evaluation_env(model, env_id, seed=1000)
     untrained = float(np.mean(episode_successes(model, env, 20)))
-    model.learn(15_000)
+    model.learn(steps)
     trained = float(np.mean(episode_successes(model, env, 20)))
     record_property("evaluation_success", (untrained, trained))
     env.close()
-    assert untrained <= 0.15 and trained >= 0.3, (untrained, trained)
+    assert untrained <= 0.15 and trained >= least, (untrained, trained)
 
 
 def microwave_opening(model, episodes: int) -> float:

@@ -52,10 +52,14 @@ def test_cpu_profiles_are_cpu_sized_and_paper_files_are_paper_sized(algo):
             assert cpu.get(key) == (expected or paper.get(key)), (algo, env_id, key)
 
 
-# Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", sections 25-26), the CPU
-# profile names them; the paper-scale file keeps the paper's one demonstration.
+# Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", sections 25, 26 and
+# 29), the CPU profile names them; the paper-scale file keeps the paper's one demonstration.
 KITCHEN = "FrankaKitchenMicrowaveBurner-v0"
-MEASURED_DEMONSTRATIONS = {("dipper", KITCHEN): "auto:dart20", ("dipper", "FetchPickAndPlace-v4"): "auto:dart20"}
+MEASURED_DEMONSTRATIONS = {
+    ("dipper", KITCHEN): "auto:dart20",
+    ("dipper", "FetchPickAndPlace-v4"): "auto:dart20",
+    ("dipper", "FetchPush-v4"): "auto:dart200",
+}
 
 
 def test_the_kitchen_profile_clones_twenty_dart_episodes_at_the_authors_demonstration_batch(tmp_path, monkeypatch):
@@ -68,6 +72,19 @@ def test_the_kitchen_profile_clones_twenty_dart_episodes_at_the_authors_demonstr
     assert len(np.unique(demonstrations.last_step)) == 20, "twenty episodes"
     assert not model.lower.q_filter and model.lower.bc_coef == 1.0 and n_timesteps == 675_000
     assert isinstance(env, VecNormalize) and not env.training, "statistics fixed to the demonstrations' states"
+    env.close()
+
+
+def test_the_random_push_profile_clones_two_hundred_dart_episodes(tmp_path, monkeypatch):
+    """The measured random push configuration is what a zoo user gets: 200 DART episodes made in process, cloned
+    unfiltered at weight 1.0 from 128 demonstration steps per lower batch, with the fixed tasks' switches."""
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    model, env, n_timesteps = make_model("dipper", "FetchPush-v4", seed=0, overrides=dict(buffer_size=1000))
+    demonstrations = model.lower.demonstrations
+    assert demonstrations is not None and model.lower.demo_share * model.batch_size == 128
+    assert len(np.unique(demonstrations.last_step)) == 200, "two hundred episodes"
+    assert not model.lower.q_filter and model.lower.bc_coef == 1.0 and n_timesteps == 640_000
+    assert model.hindsight_actions and model.planning == "subgoal"
     env.close()
 
 
@@ -105,7 +122,7 @@ def test_paper_scale_files_weigh_behaviour_cloning_as_the_authors(algo):
 
 
 # Tasks where a run showed the switches beyond the paper help (BENCHMARKS.md, "the paper's tasks on a CPU").
-MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0", "FetchPickAndPlace-v4"}
+MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0", "FetchPickAndPlace-v4", "FetchPush-v4"}
 
 
 def test_dipper_switches_are_on_only_where_measured():
