@@ -62,28 +62,31 @@ MEASURED_DEMONSTRATIONS = {
 }
 
 
-def test_the_kitchen_profile_clones_twenty_dart_episodes_at_the_authors_demonstration_batch(tmp_path, monkeypatch):
-    """The measured kitchen configuration is what a zoo user gets: 20 DART episodes made in process, unfiltered cloning
-    of 128 demonstration steps per lower batch (the authors' 128 of 1024), observations scaled by the demonstrations."""
-    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
-    model, env, n_timesteps = make_model("dipper", KITCHEN, seed=0, overrides=dict(buffer_size=1000))
+def dart_profile(env_id: str, episodes: int, monkeypatch, cache: Path):
+    """The task's ``dipper`` profile as a zoo user gets it, its DART episodes made in process into ``cache``, checked
+    to clone all ``episodes`` of them unfiltered at weight 1.0 from 128 demonstration steps per lower batch (the
+    authors' 128 of 1024). Returns what ``make_model`` returns."""
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(cache))
+    model, env, n_timesteps = make_model("dipper", env_id, seed=0, overrides=dict(buffer_size=1000))
     demonstrations = model.lower.demonstrations
     assert demonstrations is not None and model.lower.demo_share * model.batch_size == 128
-    assert len(np.unique(demonstrations.last_step)) == 20, "twenty episodes"
-    assert not model.lower.q_filter and model.lower.bc_coef == 1.0 and n_timesteps == 675_000
+    assert len(np.unique(demonstrations.last_step)) == episodes
+    assert not model.lower.q_filter and model.lower.bc_coef == 1.0
+    return model, env, n_timesteps
+
+
+def test_the_kitchen_profile_clones_twenty_dart_episodes_at_the_authors_demonstration_batch(tmp_path, monkeypatch):
+    """The measured kitchen configuration, with observations scaled by the demonstrations."""
+    _, env, n_timesteps = dart_profile(KITCHEN, 20, monkeypatch, tmp_path)
+    assert n_timesteps == 675_000
     assert isinstance(env, VecNormalize) and not env.training, "statistics fixed to the demonstrations' states"
     env.close()
 
 
 def test_the_random_push_profile_clones_two_hundred_dart_episodes(tmp_path, monkeypatch):
-    """The measured random push configuration is what a zoo user gets: 200 DART episodes made in process, cloned
-    unfiltered at weight 1.0 from 128 demonstration steps per lower batch, with the fixed tasks' switches."""
-    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
-    model, env, n_timesteps = make_model("dipper", "FetchPush-v4", seed=0, overrides=dict(buffer_size=1000))
-    demonstrations = model.lower.demonstrations
-    assert demonstrations is not None and model.lower.demo_share * model.batch_size == 128
-    assert len(np.unique(demonstrations.last_step)) == 200, "two hundred episodes"
-    assert not model.lower.q_filter and model.lower.bc_coef == 1.0 and n_timesteps == 640_000
+    """The measured random push configuration, with the fixed tasks' switches."""
+    model, env, n_timesteps = dart_profile("FetchPush-v4", 200, monkeypatch, tmp_path)
+    assert n_timesteps == 640_000
     assert model.hindsight_actions and model.planning == "subgoal"
     env.close()
 
