@@ -12,13 +12,14 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import DIPPER, HIER, RAPS
 from sb3_dipper.common.hierarchical_policy import SACPolicyLowLevel
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from tests.conftest import any_tiny_model, short_maze, tiny_model
+from tests.conftest import SHORT_EPISODES, any_tiny_model, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from zoo_scripts import planner_share
 
@@ -59,27 +60,42 @@ def test_shortest_paths_stitch_trajectories(graph):
     assert graph.distances_to(goal)[start] == 6.0
 
 
+def assert_plan(plan, waypoints, planned):
+    np.testing.assert_allclose(plan.waypoints, waypoints)
+    assert plan.planned.dtype == bool and plan.planned.tolist() == planned
+
+
 def test_waypoints_walk_the_path(graph):
     start, goal = np.array([[0.4, 0.6]]), np.array([[3.5, 3.4]])
-    np.testing.assert_allclose(graph.waypoints(start, goal, lookahead=1), [[1.5, 0.5]])
-    np.testing.assert_allclose(graph.waypoints(start, goal, lookahead=4), [[3.5, 1.5]])
-    # At the last step the waypoint is the goal itself, not its voxel's mean.
-    np.testing.assert_allclose(graph.waypoints(np.array([[3.5, 2.5]]), goal, lookahead=3), goal)
+    assert_plan(graph.plan(start, goal, lookahead=1), [[1.5, 0.5]], [True])
+    assert_plan(graph.plan(start, goal, lookahead=4), [[3.5, 1.5]], [True])
+    # The goal within the lookahead: the waypoint is the goal itself (not its voxel's mean), and it is planned.
+    assert_plan(graph.plan(np.array([[3.5, 2.5]]), goal, lookahead=3), goal, [True])
 
 
 def test_unvisited_goal_voxels_plan_to_the_nearest_visited_voxel(graph):
     goal = np.array([[4.6, 3.5]])  # one voxel right of (3.5, 3.5)
-    np.testing.assert_allclose(graph.waypoints(np.array([[3.5, 2.5]]), goal, lookahead=1), [[3.5, 3.5]])
+    assert_plan(graph.plan(np.array([[3.5, 2.5]]), goal, lookahead=1), [[3.5, 3.5]], [True])
     far_goal = np.array([[9.0, 9.0]])
-    np.testing.assert_allclose(graph.waypoints(np.array([[3.5, 2.5]]), far_goal, lookahead=1), far_goal)
+    assert_plan(graph.plan(np.array([[3.5, 2.5]]), far_goal, lookahead=1), far_goal, [False])
 
 
-def test_without_a_known_path_the_goal_is_returned(graph):
+def test_without_a_known_path_nothing_is_planned(graph):
     # Edges are directed: nothing leads back from (3.5, 3.5) to the start.
     goal = np.array([[0.5, 0.5]])
-    np.testing.assert_allclose(graph.waypoints(np.array([[3.5, 3.5]]), goal, lookahead=1), goal)
+    assert_plan(graph.plan(np.array([[3.5, 3.5]]), goal, lookahead=1), goal, [False])
     empty = SubgoalGraph(SPACE, resolution=1.0)
-    np.testing.assert_allclose(empty.waypoints(np.array([[1.0, 1.0]]), goal, lookahead=1), goal)
+    assert_plan(empty.plan(np.array([[1.0, 1.0]]), goal, lookahead=1), goal, [False])
+    # Already in the goal's own voxel: nothing to plan.
+    assert_plan(graph.plan(np.array([[3.4, 3.6]]), np.array([[3.5, 3.5]]), lookahead=1), [[3.5, 3.5]], [False])
+    # An unknown start voxel.
+    assert_plan(graph.plan(np.array([[8.5, 8.5]]), np.array([[3.5, 3.5]]), lookahead=1), [[3.5, 3.5]], [False])
+
+
+def test_plan_rows_are_independent(graph):
+    achieved = np.array([[0.4, 0.6], [3.5, 3.5], [3.5, 2.5]])
+    goals = np.array([[3.5, 3.4], [0.5, 0.5], [3.5, 3.4]], dtype=np.float64)
+    assert_plan(graph.plan(achieved, goals, lookahead=1), [[1.5, 0.5], [0.5, 0.5], [3.5, 3.4]], [True, False, True])
 
 
 def test_resolution_must_be_positive():
@@ -90,18 +106,45 @@ def test_resolution_must_be_positive():
 # ---------------------------------------------------------------------------------------------------- who proposes
 
 
-def test_planner_decisions_are_marked_and_their_share_logged(tmp_path, maze_env):
-    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
+def one_room_maze(seed: int = 0):
+    """The short maze with the goal in the start room, where 20-step episodes reach it and the graph learns paths."""
+    env_kwargs = {**SHORT_EPISODES, "goal_room": "bottom_left"}
+    return make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=seed, env_kwargs=env_kwargs)
+
+
+def grid_graph(model: DIPPER) -> None:
+    """Give the model's graph every voxel of its subgoal space, each joined both ways to its four neighbours (the walls
+    ignored), so that it knows a path from everywhere to everywhere."""
+    graph = model.subgoal_graph
+    cells = np.stack(np.meshgrid(*(np.arange(n) for n in graph.grid_shape), indexing="ij"), -1).reshape(-1, 2)
+    points = (graph.subgoal_space.low + (cells + 0.5) * graph.resolution).astype(np.float32)
+    ids = graph.voxel_ids(points)
+    graph.set_nodes(ids, points)
+    step = {tuple(cell): voxel for cell, voxel in zip(cells.tolist(), ids.tolist(), strict=True)}
+    edges = [
+        (voxel, step[(a + da, b + db)])
+        for (a, b), voxel in step.items()
+        for da, db in ((0, 1), (1, 0), (0, -1), (-1, 0))
+        if (a + da, b + db) in step
+    ]
+    graph.set_edges(np.array(edges))
+
+
+def test_planner_decisions_are_marked_and_their_share_logged(tmp_path):
+    model = tiny_model(DIPPER, one_room_maze(), planning="subgoal", planning_lookahead=2)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(400, log_interval=1)
     assert len(model.subgoal_graph) > 0
     shares = pd.read_csv(tmp_path / "progress.csv")["rollout/planned_share"].dropna()
-    assert len(shares) > 0 and ((shares >= 0) & (shares <= 1)).all() and shares.iloc[-1] > 0
+    # Short episodes seldom know a path to their goal: the planner plans a few rows, the policy the rest.
+    assert len(shares) > 0 and ((shares >= 0) & (shares < 1)).all() and shares.max() > 0
+    maze_env = one_room_maze()
 
     observation = maze_env.reset()
     actions = model._high_level_actions(observation, deterministic=True)
-    planned = model._planned_actions(model._with_planned_goals(observation, model.subgoal_graph))
-    np.testing.assert_array_equal(actions[model.last_planned], planned[model.last_planned])
+    plan = model._plan(observation, model.subgoal_graph)
+    np.testing.assert_array_equal(model.last_planned, plan.planned)
+    np.testing.assert_array_equal(actions[plan.planned], model.subgoal_space.to_unit(plan.waypoints[plan.planned]))
     model.subgoal_graph = None  # the planner off: the policy proposes every subgoal
     model._high_level_actions(observation, deterministic=True)
     assert model.last_planned.shape == (1,) and not model.last_planned.any()
@@ -110,22 +153,23 @@ def test_planner_decisions_are_marked_and_their_share_logged(tmp_path, maze_env)
 def test_plan_in_predict_false_plans_in_training_only(tmp_path):
     models = {}
     for plan_in_predict in (True, False):
-        model = tiny_model(DIPPER, short_maze(), planning="subgoal", planning_lookahead=2, plan_in_predict=plan_in_predict)
+        model = tiny_model(DIPPER, one_room_maze(), planning="subgoal", planning_lookahead=2, plan_in_predict=plan_in_predict)
         model.set_logger(configure(str(tmp_path / str(plan_in_predict)), ["csv"]))
         model.learn(400, log_interval=1)
         models[plan_in_predict] = model
-    # Training is the same run: the planner steered the training proposals either way.
+    # Training is the same run: the planner steered some training proposals either way.
     assert (pd.read_csv(tmp_path / "False" / "progress.csv")["rollout/planned_share"].dropna() > 0).any()
     for trained, policy_only in zip(models[True].policy.parameters(), models[False].policy.parameters(), strict=True):
         assert th.equal(trained, policy_only)
 
     model = models[False]
+    grid_graph(model)  # a path from everywhere: predict would plan every row if it planned
     observation = short_maze(seed=3).reset()
     actions, _ = model.predict(observation, deterministic=True)
     assert not model.last_planned.any()  # the preference-trained policy proposed the subgoal
     model.plan_in_predict = True
     model.predict(observation, deterministic=True)
-    assert model.last_planned.any()
+    assert model.last_planned.all()
     model.plan_in_predict = False
     # Nothing of the planner is needed to act, so the model exports; the exported policy acts as predict does.
     exported_actions, _ = model.export_policy().predict(observation, deterministic=True)
@@ -145,6 +189,7 @@ def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_
     maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
     model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
     model.learn(1000)  # the graph is built after 4 episodes
+    grid_graph(model)  # a path from everywhere, so that the planner plans (on 1,000 steps it seldom knows one)
     model.save(run / "PointMazeFourRooms-v0.zip")
     # Checkpoints as rl-zoo3's CheckpointCallback names them (benchmark.py --save-freq), out of order on disk.
     model.save(run / "rl_model_1000_steps.zip")
@@ -227,3 +272,157 @@ def test_planner_share_measures_a_baseline_three_ways_and_refuses_a_scripted_low
     any_tiny_model(RAPS, maze_env).save(raps_run / "PointMazeFourRooms-v0.zip")
     with pytest.raises(ValueError, match="is a RAPS, not a hierarchical model with a learned lower level"):
         planner_share.measure(raps_run, "raps", "PointMazeFourRooms-v0", n_episodes=1)
+
+
+# ------------------------------------------------------------------------------- who acts where the planner did not
+
+
+def planning_model(normalize: bool) -> DIPPER:
+    """A DIPPER that plans subgoals on the short four-room maze, with ``VecNormalize`` statistics that are not the
+    identity when ``normalize`` (so a goal that went through the normaliser's round trip differs from the observation's)."""
+    env = short_maze()
+    if normalize:
+        env = VecNormalize(env, norm_obs=True, norm_reward=False)
+        env.reset()
+        for _ in range(200):  # ten episodes: ten goals, so the goal's statistics are not a single point
+            env.step(np.array([env.action_space.sample()]))
+        env.training = False  # the statistics stay those the model copies
+    model = tiny_model(DIPPER, env, planning="subgoal", planning_lookahead=2, random_subgoal_prob=0.0)
+    model._refresh_low_normalizer()
+    return model
+
+
+def observation_at(model: DIPPER, achieved: list[float], goal: list[float], dtype) -> dict:
+    """A (normalised, where the model normalises) observation whose achieved and desired goals are the given points."""
+    observation = {key: np.array(value, dtype=np.float64) for key, value in model.env.reset().items()}
+    if model._vec_normalize_env is not None:
+        observation = model._vec_normalize_env.get_original_obs()
+    observation["achieved_goal"][:] = achieved
+    observation["desired_goal"][:] = goal
+    if model._vec_normalize_env is not None:
+        observation = model._vec_normalize_env.normalize_obs(observation)
+    return {key: value.astype(dtype) for key, value in observation.items()}
+
+
+def known_path(model: DIPPER, points: list[list[float]]) -> None:
+    """The model's graph: a chain of edges through ``points`` (world coordinates)."""
+    graph = model.subgoal_graph
+    points_array = np.array(points, dtype=np.float32)
+    ids = graph.voxel_ids(points_array)
+    graph.set_nodes(ids, points_array)
+    graph.set_edges(np.stack([ids[:-1], ids[1:]], axis=1))
+
+
+def proposals(model: DIPPER, observation: dict, training: bool) -> np.ndarray:
+    """The higher-level actions as training collects them (sampled, with the graph) or as ``predict`` decides them,
+    each from the same torch seed, so the policy's own sample is the same in every call."""
+    th.manual_seed(7)
+    if training:
+        return model._collecting_high_level_actions(observation)
+    return model._high_level_actions(observation, deterministic=True)
+
+
+def policy_proposals(model: DIPPER, observation: dict, training: bool) -> np.ndarray:
+    th.manual_seed(7)
+    actions, _ = model.policy.predict(observation, deterministic=not training)
+    return np.asarray(actions, dtype=np.float32).reshape(1, -1)
+
+
+CASES_WITHOUT_A_PLAN = {
+    # no edge at all
+    "empty graph": ([], [-2.5, -2.5], [2.5, 2.5]),
+    # the agent is already in the goal's voxel, which the graph knows
+    "goal's own voxel": ([[-2.5, -2.5], [2.5, 2.5]], [2.45, 2.55], [2.5, 2.5]),
+    # the goal is known, but nothing leads from here to it
+    "no path": ([[-2.5, -2.5], [2.5, 2.5]], [2.5, 2.5], [-2.5, -2.5]),
+}
+
+
+@pytest.mark.parametrize("training", [True, False], ids=["training", "predict"])
+@pytest.mark.parametrize("normalize", [False, True], ids=["raw", "VecNormalize"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("case", list(CASES_WITHOUT_A_PLAN))
+def test_where_the_planner_did_not_plan_the_policy_acts(case, dtype, normalize, training):
+    model = planning_model(normalize)
+    path, achieved, goal = CASES_WITHOUT_A_PLAN[case]
+    if path:
+        known_path(model, path)
+    observation = observation_at(model, achieved, goal, dtype)
+    actions = proposals(model, observation, training)
+    assert model.last_planned.tolist() == [False]
+    np.testing.assert_array_equal(actions, policy_proposals(model, observation, training))
+
+
+@pytest.mark.parametrize("training", [True, False], ids=["training", "predict"])
+@pytest.mark.parametrize("normalize", [False, True], ids=["raw", "VecNormalize"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_known_path_is_planned_to_its_waypoint_and_to_the_goal_within_the_lookahead(dtype, normalize, training):
+    model = planning_model(normalize)
+    known_path(model, [[-2.5, -2.5], [-1.5, -2.5], [-0.5, -2.5], [0.5, -2.5]])
+    # Three options away with a lookahead of 2: the waypoint two voxels along.
+    actions = proposals(model, observation_at(model, [-2.5, -2.5], [0.5, -2.5], dtype), training)
+    assert model.last_planned.tolist() == [True]
+    np.testing.assert_allclose(model.subgoal_space.to_world(actions), [[-0.5, -2.5]], atol=1e-5)
+    # One option away: the goal itself is the planned subgoal.
+    actions = proposals(model, observation_at(model, [-0.5, -2.5], [0.45, -2.4], dtype), training)
+    assert model.last_planned.tolist() == [True]
+    np.testing.assert_allclose(model.subgoal_space.to_world(actions), [[0.45, -2.4]], atol=1e-5)
+
+
+def test_planning_off_and_an_empty_graph_act_identically():
+    env = short_maze(n_envs=2)
+    planning = tiny_model(DIPPER, env, planning="subgoal")
+    off = tiny_model(DIPPER, env, planning="off")
+    off.policy.load_state_dict(planning.policy.state_dict())
+    off.lower.policy.load_state_dict(planning.lower.policy.state_dict())
+    assert len(planning.subgoal_graph) == 0
+    observation, state, episode_start = env.reset(), None, np.ones(2, dtype=bool)
+    for _ in range(20):
+        action, state_planning = planning.predict(observation, state, episode_start, deterministic=True)
+        action_off, state = off.predict(observation, state, episode_start, deterministic=True)
+        np.testing.assert_array_equal(action, action_off)
+        np.testing.assert_array_equal(state_planning[0], state[0])
+        assert not planning.last_planned.any()
+        observation, _, dones, _ = env.step(action)
+        episode_start = dones
+
+
+def test_random_subgoals_are_not_counted_as_planned(tmp_path):
+    model = tiny_model(DIPPER, short_maze(), planning="subgoal", planning_lookahead=2, random_subgoal_prob=1.0)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(400, log_interval=1)
+    assert len(model.subgoal_graph) > 0
+    observation = model.env.reset()
+    model._collecting_high_level_actions(observation)
+    planned_by_graph = model.last_planned.copy()
+    model._training_high_level_actions(observation)
+    assert model.last_random_subgoals.all() and not model.last_planned.any()
+    shares = pd.read_csv(tmp_path / "progress.csv")["rollout/planned_share"].dropna()
+    assert len(shares) > 0 and (shares == 0).all()
+    # The graph itself did plan some rows: only the swaps hid them.
+    assert planned_by_graph.shape == (1,)
+
+
+def test_a_trained_higher_policy_acts_differently_from_an_untrained_one(maze_env):
+    """On the fast maze, with the planner steering training only, the evaluation's subgoals are the policy's: resetting
+    the higher policy to untrained weights changes them (before the planner flag was returned by the planner, every row
+    counted as planned and the two evaluations were the same)."""
+    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2, plan_in_predict=False)
+    model.learn(600)
+    assert len(model.preferences) > 0 and len(model.subgoal_graph) > 0
+    trained = evaluation_subgoals(model)
+    assert not model.last_planned.any()
+    planner_share.reset_higher_policy(model, seed=1)
+    untrained = evaluation_subgoals(model)
+    assert trained.shape == untrained.shape and not np.allclose(trained, untrained)
+
+
+def evaluation_subgoals(model: DIPPER) -> np.ndarray:
+    """The subgoals of one deterministic 20-step episode from a fixed start, as ``predict`` carries them."""
+    env = short_maze(seed=5)
+    observation, state, episode_start, subgoals = env.reset(), None, np.ones(1, dtype=bool), []
+    for _ in range(20):
+        action, state = model.predict(observation, state, episode_start, deterministic=True)
+        subgoals.append(state[0].copy())
+        observation, _, episode_start, _ = env.step(action)
+    return np.concatenate(subgoals)

@@ -258,6 +258,8 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.low_normalizer.refresh(self._vec_normalize_env)
         self._setup_low_level(demonstrations)
         self._setup_high_level()
+        # Which envs' last training subgoal was drawn uniformly at random (the warm-up's, or a random_subgoal_prob swap).
+        self.last_random_subgoals = np.zeros(self.n_envs, dtype=bool)
         self.option_env = None
         if self.env is not None:
             self.option_env = OptionVecEnv(
@@ -376,14 +378,17 @@ class HierarchicalAlgorithm(CheckedLoading):
         return False
 
     def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
-        """Actions while collecting: uniform before ``learning_starts`` and with ``random_subgoal_prob``."""
+        """Actions while collecting: uniform before ``learning_starts`` and with ``random_subgoal_prob`` (those rows are
+        :attr:`last_random_subgoals`)."""
         assert self.subgoal_space is not None
         shape = (self.n_envs, self.subgoal_space.dim)
         if self.num_timesteps < self.learning_starts:
+            self.last_random_subgoals = np.ones(self.n_envs, dtype=bool)
             return self._rng.uniform(-1.0, 1.0, size=shape).astype(np.float32)
         actions = self._collecting_high_level_actions(observation)
         random = self._rng.random(self.n_envs) < self.random_subgoal_prob
         actions[random] = self._rng.uniform(-1.0, 1.0, size=(int(random.sum()), shape[1]))
+        self.last_random_subgoals = random
         return actions
 
     def predict(
@@ -619,7 +624,14 @@ class HierarchicalAlgorithm(CheckedLoading):
     # ---------------------------------------------------------------------------------------------------- saving
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "low_level", "option_env", "_callback", "_option_metrics"]
+        return [
+            *super()._excluded_save_params(),
+            "low_level",
+            "option_env",
+            "_callback",
+            "_option_metrics",
+            "last_random_subgoals",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return sac_torch_save_params(self.lower, "lower")

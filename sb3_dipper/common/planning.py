@@ -5,16 +5,19 @@ edge joins the voxel an option started in to the voxel it ended in. Edges are fa
 primitive-in-the-loop labels are), so the graph never asks the current lower level for anything, and paths through it
 stitch pieces of different trajectories together.
 
-:meth:`SubgoalGraph.waypoints` walks ``lookahead`` edges along a shortest path (in options) from the voxel of the
+:meth:`SubgoalGraph.plan` walks ``lookahead`` edges along a shortest path (in options) from the voxel of the
 current achieved goal toward the goal: toward the goal's own voxel, or, if no option ever ended there, toward the
-visited voxel nearest to it (within ``2 * resolution``), from where the lower level covers the last stretch. Where no
-path is known, the goal itself is returned and the policy acts as usual.
+visited voxel nearest to it (within ``2 * resolution``), from where the lower level covers the last stretch. It says
+per row whether it planned: a row is planned exactly where a path is known from the current voxel to a different goal
+node. Callers act on that flag, never on whether a waypoint differs from the goal (the goal itself is a planned
+waypoint once the path reaches it, and a goal that went through a normaliser or a float32 copy differs from itself).
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -23,6 +26,15 @@ from sb3_dipper.common.trajectories import TrajectoryBuffer
 
 DictObs = dict[str, np.ndarray]
 EdgeCheck = Callable[[DictObs, np.ndarray], np.ndarray]
+
+
+class Plan(NamedTuple):
+    """What the planner proposes for a batch of rows."""
+
+    #: ``(n, d)`` float32: the waypoint of each planned row, the goal (as given) elsewhere
+    waypoints: np.ndarray
+    #: ``(n,)`` bool: whether the planner knew a path for the row and proposes its waypoint
+    planned: np.ndarray
 
 
 class SubgoalGraph:
@@ -132,25 +144,33 @@ class SubgoalGraph:
         nearest = int(np.argmin(distances))
         return nearest if distances[nearest] <= 2 * self.resolution else None
 
-    def waypoints(self, achieved: np.ndarray, goals: np.ndarray, lookahead: int) -> np.ndarray:
-        """For each row, the point ``lookahead`` options along a shortest known path to the goal (else the goal)."""
-        result = np.array(goals, dtype=np.float32, copy=True)
+    def plan(self, achieved: np.ndarray, goals: np.ndarray, lookahead: int) -> Plan:
+        """For each row, the point ``lookahead`` options along a shortest known path to the goal, and whether there is one.
+
+        A row is not planned (its waypoint is the goal as given) where the graph is empty, the current voxel or the
+        goal has no node, the current voxel is the goal's node, or no path leads from one to the other. Along a path,
+        the waypoint is the goal itself once the walk reaches the goal's own (visited) voxel, else the mean point of
+        the node the walk reached.
+        """
+        waypoints = np.array(goals, dtype=np.float32, copy=True)
+        planned = np.zeros(waypoints.shape[0], dtype=bool)
         if len(self) == 0:
-            return result
+            return Plan(waypoints, planned)
         start_ids = self.voxel_ids(achieved)
         for row, start_voxel in enumerate(start_ids):
-            start, goal = self._index.get(int(start_voxel)), self.goal_node(result[row])
+            start, goal = self._index.get(int(start_voxel)), self.goal_node(waypoints[row])
             if start is None or goal is None or start == goal:
                 continue
             distances = self.distances_to(goal)
             if distances[start] == np.inf:
                 continue
+            planned[row] = True
             current = start
             for _ in range(lookahead):
                 current = min(self._successors[current], key=lambda node: distances[node])
                 if current == goal:
                     break
-            goal_voxel_visited = int(self.node_ids[goal]) == int(self.voxel_ids(result[row : row + 1])[0])
+            goal_voxel_visited = int(self.node_ids[goal]) == int(self.voxel_ids(waypoints[row : row + 1])[0])
             if current != goal or not goal_voxel_visited:
-                result[row] = self.node_points[current]
-        return result
+                waypoints[row] = self.node_points[current]
+        return Plan(waypoints, planned)

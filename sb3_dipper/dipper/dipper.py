@@ -28,7 +28,7 @@ from sb3_dipper.common.losses import (
 )
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
-from sb3_dipper.common.planning import SubgoalGraph
+from sb3_dipper.common.planning import Plan, SubgoalGraph
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
     PreferenceSource,
@@ -92,8 +92,11 @@ class DIPPER(HierarchicalAlgorithm):
     :param planning: planning over achieved states (:class:`~sb3_dipper.common.planning.SubgoalGraph`): ``"off"`` (the
         paper), ``"subgoal"`` (where the graph knows a path to the goal, propose the waypoint on it; elsewhere the
         policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal).
-        With ``"subgoal"`` the share of the policy's training proposals the planner replaced is logged as
-        ``rollout/planned_share``, and :attr:`last_planned` tells which envs' last subgoal was planned
+        The planner says per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`): a row is planned
+        where the graph knows a path from the current voxel to the goal's, and only there does its waypoint replace the
+        policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's (random subgoals
+        excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs' last subgoal was
+        the planner's
     :param plan_in_predict: whether :meth:`predict` (evaluation, deployment) plans as training does. ``False`` (only
         with ``planning="subgoal"``): the planner steers the training proposals, and the preference-trained policy
         proposes every subgoal when the model is used; such a model can be exported (:meth:`export_policy`)
@@ -341,39 +344,50 @@ class DIPPER(HierarchicalAlgorithm):
         return self._proposals(observation, deterministic=False, graph=self.subgoal_graph)
 
     def _proposals(self, observation: DictObs, deterministic: bool, graph: SubgoalGraph | None) -> np.ndarray:
-        """The policy's subgoals, with the planner's waypoints where ``graph`` knows a path (``planning``)."""
-        planned = None
-        if graph is not None:
-            planned = self._with_planned_goals(observation, graph)
-        policy_input = planned if planned is not None and self.planning == "waypoint" else observation
+        """The policy's subgoals; with ``planning="subgoal"``, the planner's waypoints in the rows ``graph`` planned."""
+        plan = self._plan(observation, graph) if graph is not None else None
+        policy_input = observation
+        if plan is not None and self.planning == "waypoint":
+            policy_input = self._with_waypoints_as_goals(observation, plan)
         actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
         actions = np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
         self.last_planned = np.zeros(actions.shape[0], dtype=bool)
-        if planned is not None and self.planning == "subgoal":
-            self.last_planned = np.any(planned["desired_goal"] != observation["desired_goal"], axis=-1)
-            actions[self.last_planned] = self._planned_actions(planned)[self.last_planned]
+        if plan is not None and self.planning == "subgoal":
+            assert self.subgoal_space is not None
+            self.last_planned = plan.planned
+            actions[plan.planned] = self.subgoal_space.to_unit(plan.waypoints[plan.planned])
         return actions
 
     def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
+        self.last_planned = np.zeros(self.n_envs, dtype=bool)  # the warm-up's uniform subgoals are nobody's plan
         actions = super()._training_high_level_actions(observation)
+        self.last_planned &= ~self.last_random_subgoals  # a random subgoal replaced the planner's waypoint
         if self.planning == "subgoal" and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
 
-    def _with_planned_goals(self, observation: DictObs, graph: SubgoalGraph) -> DictObs:
-        """Replace each goal by a waypoint on a shortest known path toward it (planning over achieved states)."""
+    def _plan(self, observation: DictObs, graph: SubgoalGraph) -> Plan:
+        """The graph's waypoints toward each row's goal, in the subgoal space's world units, and the rows it planned."""
         assert self.subgoal_space is not None
-        space, normalizer = self.subgoal_space, self.low_normalizer
         achieved, desired = observation["achieved_goal"], observation["desired_goal"]
-        if normalizer is not None:
-            achieved = normalizer.unnormalize_goal(achieved, "achieved_goal")
-            desired = normalizer.unnormalize_goal(desired, "desired_goal")
-        waypoints = graph.waypoints(space.project(achieved), space.project(desired), self.planning_lookahead)
-        planned = np.array(desired, dtype=np.float32)
-        planned[..., list(space.indices) if space.indices is not None else slice(None)] = waypoints
-        if normalizer is not None:
-            planned = normalizer.normalize_goal(planned, "desired_goal")
-        return {**observation, "desired_goal": planned}
+        if self.low_normalizer is not None:
+            achieved = self.low_normalizer.unnormalize_goal(achieved, "achieved_goal")
+            desired = self.low_normalizer.unnormalize_goal(desired, "desired_goal")
+        space = self.subgoal_space
+        return graph.plan(space.project(achieved), space.project(desired), self.planning_lookahead)
+
+    def _with_waypoints_as_goals(self, observation: DictObs, plan: Plan) -> DictObs:
+        """The observation with each planned row's goal replaced by its waypoint (``planning="waypoint"``); the other
+        rows are the observation's own."""
+        assert self.subgoal_space is not None
+        space, normalizer, rows = self.subgoal_space, self.low_normalizer, plan.planned
+        goals = np.array(observation["desired_goal"], copy=True)
+        if not rows.any():
+            return observation
+        planned = goals[rows] if normalizer is None else normalizer.unnormalize_goal(goals[rows], "desired_goal")
+        planned[..., list(space.indices) if space.indices is not None else slice(None)] = plan.waypoints[rows]
+        goals[rows] = planned if normalizer is None else normalizer.normalize_goal(planned, "desired_goal")
+        return {**observation, "desired_goal": goals}
 
     def _reachable_by_lower_level(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
         """Whether the lower level's value of reaching each target from each start state passes the threshold."""
@@ -387,10 +401,6 @@ class DIPPER(HierarchicalAlgorithm):
                 actions = self.lower.actor(low_obs, deterministic=True)
                 values.append(th.cat(self.lower.critic(low_obs, actions), dim=1).min(dim=1).values.cpu().numpy())
         return np.concatenate(values) >= self.planning_value_threshold
-
-    def _planned_actions(self, planned: DictObs) -> np.ndarray:
-        """The higher-level actions whose subgoals are the planned waypoints."""
-        return self._subgoal_actions(planned["desired_goal"])
 
     def _store_option(
         self,
