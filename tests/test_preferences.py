@@ -9,9 +9,11 @@ from sb3_dipper.common.preferences import (
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
     MAX_NEW_PAIRS_PER_ROUND,
+    final_goal_distances,
     labels_from_scores,
     load_preference_data,
     pairs_due,
+    progress_labels,
     relabel_hindsight_actions,
     sample_trajectory_pairs,
     save_preference_data,
@@ -19,6 +21,7 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+from sb3_dipper.labelling.sources import ProgressTieBreaker, preference_source_from
 
 SPACE = SubgoalSpace(low=np.full(2, -5.0), high=np.full(2, 5.0), threshold=0.5)
 OBS_SPACE = spaces.Dict(
@@ -199,3 +202,27 @@ def test_pickled_preference_files_are_refused(tmp_path):
     np.savez(tmp_path / "pickled.npz", labels=np.array([{"a": 1}], dtype=object))
     with pytest.raises(ValueError, match="Malformed preference file"):
         PreferenceDataset.load(tmp_path / "pickled.npz")
+
+
+def test_progress_labels_prefer_the_trajectory_that_ends_nearer_the_goal(buffer):
+    pairs = pairs_of(buffer, [0, 1, 2, 3], [1, 2, 3, 0])
+    # Final options end at (3, 0), (0, 3), (0, 0) and (3, 0.1) (trajectory 3 has two options); GOAL is (3, 0).
+    np.testing.assert_allclose(
+        final_goal_distances(pairs), [[0.0, np.sqrt(18.0), 3.0, 0.1], [np.sqrt(18.0), 3.0, 0.1, 0.0]], atol=1e-6
+    )
+    np.testing.assert_array_equal(progress_labels(pairs), [1.0, 0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("spec", ["progress", {"kind": "progress"}])
+def test_progress_tie_breaker_answers_only_the_scripts_ties(buffer, spec):
+    pairs = pairs_of(buffer, [0, 1, 2, 3], [1, 2, 3, 0])
+    script = PrimitiveInTheLoopLabeler(goal_reached)
+    # Trajectories 0, 2 and 3 each end one option at GOAL, 1 none: pairs (2, 3) and (3, 0) are ties.
+    np.testing.assert_array_equal(script.label(pairs), [1.0, 0.0, 0.5, 0.5])
+    source = preference_source_from(spec, script)
+    assert isinstance(source, ProgressTieBreaker) and source.script is script
+    np.testing.assert_array_equal(source.label(pairs), [1.0, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="ProgressTieBreaker needs a script"):
+        ProgressTieBreaker().label(pairs)
+    with pytest.raises(ValueError, match="preference_source"):
+        preference_source_from("progress:3", script)

@@ -132,6 +132,20 @@ def labels_from_scores(scores: np.ndarray) -> np.ndarray:
     return np.where(scores[0] > scores[1], 1.0, np.where(scores[0] < scores[1], 0.0, 0.5)).astype(np.float32)
 
 
+def final_goal_distances(pairs: TrajectoryPairs) -> np.ndarray:
+    """``(2, B)``: the distance from where each trajectory's last real option ended to the pair's goal (Euclidean,
+    in goal coordinates): the progress an oracle that knows the task's geometry would compare."""
+    last = np.maximum(pairs.mask.sum(axis=-1) - 1, 0)[..., None, None]
+    reached = np.take_along_axis(pairs.next_achieved_goals, last, axis=2)[:, :, 0]
+    goals = np.take_along_axis(pairs.observations["desired_goal"], last, axis=2)[:, :, 0]
+    return np.linalg.norm(reached - goals, axis=-1)
+
+
+def progress_labels(pairs: TrajectoryPairs) -> np.ndarray:
+    """Labels of an oracle that knows the true progress: the trajectory that ends nearer the goal is preferred."""
+    return labels_from_scores(-final_goal_distances(pairs))
+
+
 class PreferenceSource(ABC):
     """Gives preference labels to trajectory pairs (a scripted labeller, an oracle, people).
 

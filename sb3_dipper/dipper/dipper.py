@@ -37,6 +37,7 @@ from sb3_dipper.common.preferences import (
     add_new_labels,
     flat_pair_observations,
     pairs_due,
+    progress_labels,
     read_preference_data,
     sample_trajectory_pairs,
     save_preference_data,
@@ -498,7 +499,29 @@ class DIPPER(HierarchicalAlgorithm):
         if self.truncate_at_goal:
             pairs = truncate_at_first_arrival(pairs, self._goal_reached)
         pairs.labels = self._labeler.label(pairs)
+        self._record_label_diagnostics(pairs)
         add_new_labels(self.preferences, self._labeler, pairs)
+
+    def _record_label_diagnostics(self, pairs: TrajectoryPairs) -> None:
+        """What the new labels carry, and how the policy does on pairs it has not trained on yet (logged as means over
+        the options between two log dumps): the share of ties, the agreement with an oracle of the true progress
+        (:func:`~sb3_dipper.common.preferences.progress_labels`), the DPO accuracy, and the mean per-step
+        log-likelihood of the preferred and the rejected trajectories (both falling is likelihood displacement)."""
+        labelled = pairs.select(np.flatnonzero(~np.isnan(pairs.labels)))
+        if len(labelled) == 0:
+            return
+        self.logger.record_mean("train/high_new_tie_share", float(np.mean(labelled.labels == 0.5)))
+        agreement = float(np.mean(labelled.labels == progress_labels(labelled)))
+        self.logger.record_mean("train/high_label_progress_agreement", agreement)
+        with th.no_grad():
+            observations, actions, mask, labels = self._pair_tensors(labelled)
+            log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
+            _, logits = dipper_loss(log_probs, mask, labels, self.beta, self._reference_log_prob)
+            accuracy = preference_accuracy(logits, labels)
+            if accuracy is not None:
+                self.logger.record_mean("train/high_new_pair_accuracy", accuracy)
+                self.logger.record_mean("train/high_new_logp_preferred", -preferred_nll(log_probs, mask, labels).item())
+                self.logger.record_mean("train/high_new_logp_rejected", -preferred_nll(log_probs, mask, 1 - labels).item())
 
     def _pair_actions(self, pairs: TrajectoryPairs) -> np.ndarray:
         return pairs.reached_actions if self.hindsight_actions else pairs.actions

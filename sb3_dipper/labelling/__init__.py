@@ -6,9 +6,17 @@ The page itself (``sb3-dipper-label``) lives in :mod:`sb3_dipper.labelling.app`;
 from sb3_dipper.labelling.queue import LabelQueue
 from sb3_dipper.labelling.sources import (
     NoisyLabeler,
+    ProgressTieBreaker,
     QueuedPreferenceSource,
     label_queue_directory,
     preference_source_from,
 )
 
-__all__ = ["LabelQueue", "NoisyLabeler", "QueuedPreferenceSource", "label_queue_directory", "preference_source_from"]
+__all__ = [
+    "LabelQueue",
+    "NoisyLabeler",
+    "ProgressTieBreaker",
+    "QueuedPreferenceSource",
+    "label_queue_directory",
+    "preference_source_from",
+]

@@ -1,6 +1,7 @@
 """Preference sources beyond the primitive-in-the-loop labeller: noisy scripted labels and labels from people.
 
 :class:`NoisyLabeler` flips the scripted answer with probability ``noise`` (a simulated, imperfect person).
+:class:`ProgressTieBreaker` answers the scripted labeller's ties by which trajectory ended nearer the goal.
 :class:`QueuedPreferenceSource` sends pairs to people through a :class:`~sb3_dipper.labelling.queue.LabelQueue`
 directory and hands them to training when the answers arrive; with ``person_fraction < 1`` or ``to_person`` it labels
 the other pairs with the script at once (mixed mode), and records who labelled each pair.
@@ -19,15 +20,16 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dipper.common.preferences import PreferenceSource, TrajectoryPairs
+from sb3_dipper.common.preferences import PreferenceSource, TrajectoryPairs, progress_labels
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 
 PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
 
 SPEC_HELP = (
-    "a PreferenceSource, None (primitive-in-the-loop labels), 'primitive', 'noisy:P[:SEED]', 'people:DIRECTORY', "
-    "'mixed:DIRECTORY:FRACTION', or a dict with kind ('noisy', 'people' or 'mixed') and the source's keyword arguments"
+    "a PreferenceSource, None (primitive-in-the-loop labels), 'primitive', 'progress' (ties broken by the distance to "
+    "the goal), 'noisy:P[:SEED]', 'people:DIRECTORY', 'mixed:DIRECTORY:FRACTION', or a dict with kind ('progress', "
+    "'noisy', 'people' or 'mixed') and the source's keyword arguments"
 )
 
 
@@ -60,6 +62,31 @@ class NoisyLabeler(PreferenceSource):
         labels[ties] = self._rng.integers(2, size=int(ties.sum()))
         flip = self._rng.random(labels.shape[0]) < self.noise
         labels[flip] = 1.0 - labels[flip]
+        return labels
+
+
+class ProgressTieBreaker(PreferenceSource):
+    """The scripted (primitive-in-the-loop) answer, with its ties answered by progress: of two trajectories that reached
+    the goal equally often, the one that ended nearer to it is preferred.
+
+    Beyond the paper. Where the lower level seldom reaches the goal, nearly every primitive-in-the-loop label is a tie
+    and carries nothing for the higher level to learn; the distance at the end still tells the pairs apart. The
+    distance is measured in goal coordinates, so it is an oracle of the task's geometry, not of the lower level.
+
+    :param script: the scripted labeller (default: the algorithm's primitive-in-the-loop labeller)
+    """
+
+    def __init__(self, script: PreferenceSource | None = None) -> None:
+        self.script = script
+
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        if self.script is None:
+            raise ValueError(
+                "ProgressTieBreaker needs a script: pass script=..., or give it to an algorithm as preference_source"
+            )
+        labels = np.asarray(self.script.label(pairs), dtype=np.float32).copy()
+        ties = labels == 0.5
+        labels[ties] = progress_labels(pairs.select(np.flatnonzero(ties)))
         return labels
 
 
@@ -237,13 +264,18 @@ def preference_source_from(
     if isinstance(spec, dict):
         options = dict(spec)
         kind = options.pop("kind", None)
-        classes: dict[str, type[PreferenceSource]] = {"noisy": NoisyLabeler, "people": QueuedPreferenceSource}
+        classes: dict[str, type[PreferenceSource]] = {
+            "progress": ProgressTieBreaker,
+            "noisy": NoisyLabeler,
+            "people": QueuedPreferenceSource,
+        }
         if kind == "mixed":
             kind = "people"
             options.setdefault("person_fraction", 0.5)
         if kind not in classes:
             raise ValueError(f"Unknown preference_source kind {kind!r}: preference_source is {SPEC_HELP}")
-        options.setdefault("seed", seed)
+        if kind != "progress":
+            options.setdefault("seed", seed)
         try:
             spec = classes[kind](**options)
         except TypeError as error:
@@ -251,6 +283,9 @@ def preference_source_from(
     if not isinstance(spec, PreferenceSource):
         raise ValueError(f"Bad preference_source {spec!r}: preference_source is {SPEC_HELP}")
     # A copy: the algorithm's script (which may hold the model) must not enter the saved preference_source.
+    if isinstance(spec, ProgressTieBreaker) and spec.script is None:
+        spec = copy.copy(spec)
+        spec.script = script
     if isinstance(spec, QueuedPreferenceSource) or (isinstance(spec, NoisyLabeler) and spec.script is None):
         spec = copy.copy(spec)
         spec.script = spec.script or script
@@ -278,6 +313,8 @@ def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:
 def _parse_spec(text: str) -> dict[str, Any]:
     kind, _, rest = text.partition(":")
     try:
+        if kind == "progress" and not rest:
+            return {"kind": "progress"}
         if kind == "noisy":
             noise, _, seed = rest.partition(":")
             return {"kind": "noisy", "noise": float(noise), **({"seed": int(seed)} if seed else {})}
