@@ -26,7 +26,7 @@ extensions = [
 
 # Nothing is fetched at build time: no intersphinx; MathJax is only referenced by the HTML pages.
 source_suffix = {".rst": "restructuredtext"}
-exclude_patterns = ["_build", "benchmarks", "tasks", "**/_*.rst", "Thumbs.db", ".DS_Store"]
+exclude_patterns = ["_build", "benchmarks", "tasks", "research", "**/_*.rst", "Thumbs.db", ".DS_Store"]
 master_doc = "index"
 
 autodoc_member_order = "bysource"

@@ -210,12 +210,13 @@ def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
     fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=columns, frameon=False)
 
 
-def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
+def draw_success(panels: dict[str, dict[str, list[Curve]]], labels: Callable[[str], str] = label) -> Figure:
     """Success rate against primitive steps, one panel per env (four to a row), one line per name in it.
 
     :param panels: per env id, the seeds' success curves of each line, keyed by algorithm (or ``<algo>-<variant>``)
         name; each line is the mean over seeds with a band of one standard deviation (:func:`aggregate`), where every
         seed has been measured; seeds that went further (the others still running) go on as thin dotted lines
+    :param labels: the legend name of a line's key
     """
     names = list(dict.fromkeys(name for lines in panels.values() for name in lines))
     colors = _colors(names)
@@ -225,7 +226,7 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]]) -> Figure:
     for ax, (env_id, lines) in zip(axes.flat, panels.items(), strict=False):
         for name, curves in lines.items():
             steps, mean, std = aggregate(curves)
-            ax.plot(steps, mean, color=colors[name], label=label(name))
+            ax.plot(steps, mean, color=colors[name], label=labels(name))
             ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[name], alpha=0.2)
             for seed_steps, seed_success in curves:
                 if seed_steps[-1] > steps[-1]:

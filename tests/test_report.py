@@ -1,0 +1,65 @@
+"""The results matrix (zoo_scripts/report.py): each cell from the committed CSVs, written between markers."""
+
+from pathlib import Path
+
+import pytest
+
+from zoo_scripts import report
+
+LEARNING = """env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs,finished
+FetchPickAndPlaceFixed-v0,sac,0,135000,1.0000,,,0.1,,1
+FetchPickAndPlaceFixed-v0,sac,0,150000,0.0000,,,0.1,,1
+FetchPickAndPlaceFixed-v0,sac,0,165000,1.0000,,,0.1,,1
+FetchPickAndPlaceFixed-v0,sac,1,150000,1.0000,,,0.1,,1
+FetchPickAndPlaceFixed-v0,hier,0,90000,0.5000,,,0.1,,0
+"""
+SHARE = """run,steps,case,success,planned_share
+runs/a/seed_0/dipper/FetchPickAndPlaceFixed-v0_1,60000,lower_level_alone,0.1000,0.0000
+runs/a/seed_0/dipper/FetchPickAndPlaceFixed-v0_1,150000,lower_level_alone,0.9000,0.0000
+runs/a/seed_1/dipper/FetchPickAndPlaceFixed-v0_1,150000,lower_level_alone,0.7000,0.0000
+runs/a/seed_1/dipper/FetchPickAndPlaceFixed-v0_1,150000,policy_alone,0.2000,0.0000
+"""
+
+
+@pytest.fixture
+def results(tmp_path, monkeypatch) -> Path:
+    (tmp_path / "paper-tasks-cpu.csv").write_text(LEARNING)
+    (tmp_path / "share.csv").write_text(SHARE)
+    monkeypatch.setattr(report, "RESULTS", tmp_path)
+    return tmp_path
+
+
+def test_a_learning_cell_is_each_seeds_last_evaluation_within_the_budget(results):
+    cell, curves = report.learning_cell("FetchPickAndPlaceFixed-v0", report.Learning("sac"))
+    # Seed 0's evaluation at 165k lies past the 150k budget: its 0.00 at 150k counts.
+    assert cell.success == [0.0, 1.0] and cell.text() == "0.50 +- 0.50 (2)"
+    assert [len(steps) for steps, _ in curves] == [2, 1]
+    partial, _ = report.learning_cell("FetchPickAndPlaceFixed-v0", report.Learning("hier"))
+    assert partial.text() == "0.50 (1*)"
+    empty, _ = report.learning_cell("FetchPickAndPlaceFixed-v0", report.Learning("piper"))
+    assert empty.text() == ""
+
+
+def test_an_evaluated_cell_takes_each_runs_final_model_of_its_case(results):
+    cell = report.evaluated_cell(report.Evaluated("share.csv", "FetchPickAndPlaceFixed", "lower_level_alone"))
+    assert sorted(cell.success) == [0.7, 0.9] and cell.text() == "0.80 +- 0.10 (2)"
+    assert report.evaluated_cell(report.Evaluated("missing.csv", "x", "policy_alone")).text() == ""
+
+
+def test_the_matrix_is_written_between_the_markers_and_refused_without_them(results, tmp_path):
+    document = tmp_path / "doc.md"
+    document.write_text("before\n<!-- results-matrix -->\nold table\n<!-- /results-matrix -->\nafter\n")
+    report.write_between_markers(document, "| new |")
+    assert document.read_text() == "before\n<!-- results-matrix -->\n| new |\n<!-- /results-matrix -->\nafter\n"
+    (tmp_path / "plain.md").write_text("no markers\n")
+    with pytest.raises(SystemExit, match="no <!-- results-matrix -->"):
+        report.write_between_markers(tmp_path / "plain.md", "| new |")
+
+
+def test_every_column_names_one_configuration_per_task():
+    tables, rows, _ = report.matrix()
+    assert tables.count("| task (budget) |") == 2
+    # Every CSV row names the one source of its cell.
+    assert rows[0] == ["task", "column", "source", "seeds", "success"] and all(len(row) == 5 for row in rows)
+    for heading, sources in [*report.DIPPER_COLUMNS, *report.BASELINE_COLUMNS]:
+        assert set(sources) <= set(report.TASKS), heading

@@ -1,0 +1,261 @@
+"""The results matrix of the paper's tasks, from the committed CSVs: one command regenerates it everywhere it is shown.
+
+    python zoo_scripts/report.py                # print the matrix
+    python zoo_scripts/report.py --write        # and put it into BENCHMARKS.md and README.md, with its CSV and figure
+
+Each cell is the deterministic success at each seed's last evaluation within the task's budget, the mean +- std over
+the seeds, and the number of seeds in brackets (a ``*`` marks a seed that had not finished its budget). A cell names
+exactly one configuration: the run label of ``docs/benchmarks/paper-tasks-cpu.csv`` (``<algo>`` or
+``<algo>-<variant>``, see :data:`COLUMNS`) or, for the evaluations of a final model with part of it switched off
+(``zoo_scripts/planner_share.py``), a case of a planner-share CSV. The columns say who acts:
+
+* the ``dipper`` profile as trained (with the subgoal planner where the profile has one, which proposes the subgoal
+  wherever its graph knows a path to the goal and leaves every other subgoal to the preference-trained policy);
+* its final models evaluated with the planner off (the preference-trained policy's own success), with the higher policy
+  reset to untrained weights, and with the goal handed to the lower level as every subgoal (what the hierarchy adds is
+  measured against these controls);
+* the lower level driven by the planner, the goal wherever its graph knew no path: every earlier ``dipper`` run with
+  ``planning="subgoal"``, whose planner marked every row as planned, so the preference-trained policy never acted;
+* the paper's DIPPER and the baselines.
+
+The matrix is written between ``<!-- results-matrix -->`` markers, the figure (one panel per task, one curve per column
+that has learning curves: the mean over seeds and a band of one standard deviation) to
+``docs/benchmarks/paper-tasks.png`` and the cells to ``docs/benchmarks/paper-tasks-matrix.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import re
+import sys
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import plot
+
+from sb3_dipper.common.files import write_bytes_atomically
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "docs" / "benchmarks"
+LEARNING_CSV = RESULTS / "paper-tasks-cpu.csv"
+MARKER = re.compile(r"(<!-- results-matrix -->\n).*?(<!-- /results-matrix -->)", re.DOTALL)
+
+TASKS = {  # task: (budget in primitive steps, short name)
+    "FetchPickAndPlaceFixed-v0": (150_000, "fixed pick-and-place"),
+    "FetchPushFixed-v0": (640_000, "fixed push"),
+    "FetchPickAndPlace-v4": (150_000, "random pick-and-place"),
+    "FetchPush-v4": (640_000, "random push"),
+    "FrankaKitchenMicrowaveBurner-v0": (675_000, "kitchen"),
+    "FetchFourRoomMazeFixed-v0": (700_000, "fixed Fetch maze"),
+    "FetchFourRoomMaze-v0": (700_000, "random Fetch mazes"),
+}
+PNP_FIXED, PUSH_FIXED, PNP, PUSH, KITCHEN, MAZE_FIXED, MAZE = TASKS
+
+
+@dataclass(frozen=True)
+class Learning:
+    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV."""
+
+    label: str
+    csv: str = "paper-tasks-cpu.csv"
+
+
+@dataclass(frozen=True)
+class Evaluated:
+    """Success of final models evaluated as ``case`` in a planner-share CSV, the runs whose path contains ``run``."""
+
+    csv: str
+    run: str
+    case: str
+
+
+Source = Learning | Evaluated
+
+# The DIPPER profile of hyperparams/dipper.yml on each task, and the runs of its controls.
+DIPPER_PROFILE: dict[str, Source] = {
+    PNP_FIXED: Learning("dipper-planner-fixed"),
+    PNP: Learning("dipper-planner-fixed"),
+    KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
+    MAZE_FIXED: Learning("dipper_paper-low64"),
+    MAZE: Learning("dipper_paper-low64"),
+}
+
+
+def final_models(case: str) -> dict[str, Source]:
+    """The final models of the ``dipper`` profile's runs evaluated as ``case`` (``zoo_scripts/planner_share.py``)."""
+    fixed_planner = "planner-share-planner-fixed.csv"
+    sources: dict[str, Source] = {
+        PNP_FIXED: Evaluated(fixed_planner, "FetchPickAndPlaceFixed", case),
+        PNP: Evaluated(fixed_planner, "FetchPickAndPlace-v4", case),
+    }
+    # Without a planner the model as trained is its policy alone.
+    kitchen_case = "as_trained" if case == "policy_alone" else case
+    sources[KITCHEN] = Evaluated("planner-share-kitchen-demo0.5.csv", "dipper", kitchen_case)
+    return sources
+
+
+PLANNER_GOAL: dict[str, Source] = {
+    PNP_FIXED: Learning("planner_goal-dipper-switches-bc0.02"),
+    PUSH_FIXED: Learning("planner_goal-dipper-switches"),
+    PNP: Learning("planner_goal-dipper-switches-dart20-noqf-bc1-demo0.5"),
+    PUSH: Learning("planner_goal-dipper-switches-dart200-noqf-bc1-demo0.5"),
+}
+
+
+def everywhere(label: str, tasks: dict[str, str] | None = None) -> dict[str, Source]:
+    """``label`` on every task, or per task where ``tasks`` names another label (the same demonstrations as DIPPER)."""
+    return {task: Learning((tasks or {}).get(task, label)) for task in TASKS}
+
+
+# (heading, the source of each task's cell)
+DIPPER_COLUMNS: list[tuple[str, dict[str, Source]]] = [
+    ("DIPPER as trained", DIPPER_PROFILE),
+    ("its policy alone", final_models("policy_alone")),
+    ("policy untrained", final_models("untrained_policy")),
+    ("goal as every subgoal", final_models("lower_level_alone")),
+    ("planner + goal, earlier runs", PLANNER_GOAL),
+    ("paper's DIPPER", everywhere("dipper_paper")),
+]
+BASELINE_COLUMNS: list[tuple[str, dict[str, Source]]] = [
+    ("DIPPER-No-V", everywhere("dipper_nov")),
+    (
+        "HIER",
+        everywhere(
+            "hier",
+            {
+                PNP: "hier-dart20-noqf-bc1-demo0.5",
+                PUSH: "hier-dart200-noqf-bc1-demo0.5",
+                KITCHEN: "hier-dart20-noqf-bc1-demonorm-demo0.5",
+            },
+        ),
+    ),
+    ("PIPER", everywhere("piper")),
+    ("DAC", everywhere("dac")),
+    ("SAC+HER", everywhere("sac")),
+]
+ANCHORS = {  # PIPER's public figures (the authors' code), read off their curves: the paper's own anchors
+    PNP_FIXED: "about 0.75 at 147k",
+    PUSH_FIXED: "about 0.75 at 640k",
+    KITCHEN: "about 0.45 at 675k",
+    MAZE_FIXED: "about 0.55 at 700k",
+}
+
+
+@dataclass
+class Cell:
+    success: list[float]  # one per seed
+    partial: int  # seeds that had not finished their budget
+
+    def text(self) -> str:
+        if not self.success:
+            return ""
+        values = np.array(self.success)
+        mark = "*" if self.partial else ""
+        if len(values) == 1:
+            return f"{values[0]:.2f} (1{mark})"
+        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{mark})"
+
+
+def learning_rows(name: str) -> dict[tuple[str, str], dict[int, list[dict[str, str]]]]:
+    """The rows of a learning-curve CSV by (task, label) and seed."""
+    rows: dict[tuple[str, str], dict[int, list[dict[str, str]]]] = defaultdict(lambda: defaultdict(list))
+    with open(RESULTS / name, newline="") as file:
+        for row in csv.DictReader(file):
+            rows[(row["env"], row["algo"])][int(row["seed"])].append(row)
+    return rows
+
+
+def learning_cell(task: str, source: Learning) -> tuple[Cell, list[plot.Curve]]:
+    """The final evaluation within the budget of each seed, and each seed's curve."""
+    seeds = learning_rows(source.csv).get((task, source.label), {})
+    budget = TASKS[task][0]
+    cell, curves = Cell([], 0), []
+    for rows in seeds.values():
+        within = [row for row in rows if int(row["timesteps"]) <= budget]
+        if not within:
+            continue
+        cell.success.append(float(within[-1]["success"]))
+        cell.partial += within[-1]["finished"] != "1"
+        curves.append((np.array([float(r["timesteps"]) for r in within]), np.array([float(r["success"]) for r in within])))
+    return cell, curves
+
+
+def evaluated_cell(source: Evaluated) -> Cell:
+    """The case's success of every final model of the matching runs (the largest ``steps`` of each run)."""
+    path = RESULTS / source.csv
+    if not path.is_file():
+        return Cell([], 0)
+    finals: dict[str, tuple[int, float]] = {}
+    with open(path, newline="") as file:
+        for row in csv.DictReader(file):
+            if source.run in row["run"] and row["case"] == source.case:
+                steps = int(row.get("steps") or 0)
+                if row["run"] not in finals or steps >= finals[row["run"]][0]:
+                    finals[row["run"]] = (steps, float(row["success"]))
+    return Cell([success for _, success in finals.values()], 0)
+
+
+def cell(task: str, source: Source | None) -> tuple[Cell, list[plot.Curve]]:
+    if source is None:
+        return Cell([], 0), []
+    if isinstance(source, Learning):
+        return learning_cell(task, source)
+    return evaluated_cell(source), []
+
+
+def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]]]]:
+    """The two markdown tables, the CSV rows and the figure's panels."""
+    csv_rows = [["task", "column", "source", "seeds", "success"]]
+    panels: dict[str, dict[str, list[plot.Curve]]] = {task: {} for task in TASKS}
+    tables = []
+    for columns, extra in ((DIPPER_COLUMNS, None), (BASELINE_COLUMNS, "anchor (PIPER's code)")):
+        header = ["task (budget)", *(heading for heading, _ in columns), *([extra] if extra else [])]
+        lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        for task, (budget, _) in TASKS.items():
+            cells = []
+            for heading, sources in columns:
+                source = sources.get(task)
+                value, curves = cell(task, source)
+                cells.append(value.text())
+                if curves:
+                    panels[task][heading] = curves
+                if value.success:
+                    where = source.label if isinstance(source, Learning) else f"{source.csv}:{source.case}"  # type: ignore[union-attr]
+                    csv_rows.append([task, heading, where, str(len(value.success)), value.text()])
+            anchor = [ANCHORS.get(task, "")] if extra else []
+            lines.append(f"| `{task}` ({budget // 1000}k) | " + " | ".join(cells + anchor) + " |")
+        tables.append("\n".join(lines))
+    return "\n\n".join(tables), csv_rows, panels
+
+
+def write_between_markers(path: Path, text: str) -> None:
+    content = path.read_text()
+    if not MARKER.search(content):
+        raise SystemExit(f"{path} has no <!-- results-matrix --> ... <!-- /results-matrix --> markers to write between")
+    write_bytes_atomically(path, MARKER.sub(lambda match: match[1] + text + "\n" + match[2], content).encode())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--write", action="store_true", help="write into BENCHMARKS.md, README.md and docs/benchmarks/")
+    args = parser.parse_args()
+    tables, csv_rows, panels = matrix()
+    print(tables)
+    if args.write:
+        for document in (REPO / "BENCHMARKS.md", REPO / "README.md"):
+            write_between_markers(document, tables)
+        lines = io.StringIO()
+        csv.writer(lines, lineterminator="\n").writerows(csv_rows)
+        write_bytes_atomically(RESULTS / "paper-tasks-matrix.csv", lines.getvalue().encode())
+        figure = plot.draw_success({task: lines for task, lines in panels.items() if lines}, labels=str)
+        plot.save(figure, RESULTS / "paper-tasks", ["png"])
+
+
+if __name__ == "__main__":
+    main()
