@@ -3,6 +3,8 @@
 The hyperparameters are the zoo entry ``hyperparams/dipper.yml: PointMazeFourRooms-v0``. During training an
 ``EvalCallback`` measures the deterministic success rate every ``--eval-freq`` steps (``evaluations.npz``); at the end the
 model is evaluated on ``--final-episodes`` fresh episodes, saved, and the curve is written to ``success_curve.png``.
+The entry plans subgoals over achieved states, so the final evaluation says who acted: the model as trained (with the
+share of subgoals its planner proposed) and its preference-trained policy alone, with the planner off.
 """
 
 from __future__ import annotations
@@ -24,15 +26,22 @@ import matplotlib.pyplot as plt
 
 from sb3_dipper.common.files import write_atomically
 
-from configs import episode_successes, load_entry, make_env, make_model, torch_threads
+from configs import load_entry, make_env, make_model, torch_threads
+from planner_share import evaluate
 
 ENV_ID = "PointMazeFourRooms-v0"
 
 
-def final_success_rate(model, env_id: str, seed: int, n_episodes: int) -> float:
-    """Deterministic success rate over ``n_episodes`` new episodes (success: at the goal when the episode ends)."""
+def final_success(model, env_id: str, seed: int, n_episodes: int, planner: bool) -> dict[str, float]:
+    """Deterministic success over ``n_episodes`` new episodes (at the goal when the episode ends) and the share of
+    subgoals the planner proposed; ``planner=False`` evaluates the preference-trained policy alone."""
     eval_env = make_env(env_id, load_entry("dipper", env_id), seed=seed, n_envs=10)
-    return float(np.mean(episode_successes(model, eval_env, n_episodes)))
+    plan_in_predict = model.plan_in_predict
+    model.plan_in_predict = planner and model.planning == "subgoal"
+    try:
+        return evaluate(model, eval_env, n_episodes)
+    finally:
+        model.plan_in_predict = plan_in_predict
 
 
 def plot_success_curve(evaluations: Path, output: Path) -> None:
@@ -76,10 +85,15 @@ def main() -> None:
     training_minutes = (time.time() - start) / 60
     model.save(args.output_dir / "dipper_point_maze")
 
-    success = final_success_rate(model, ENV_ID, seed=args.seed + 2000, n_episodes=args.final_episodes)
+    as_trained = final_success(model, ENV_ID, args.seed + 2000, args.final_episodes, planner=True)
+    policy_alone = final_success(model, ENV_ID, args.seed + 2000, args.final_episodes, planner=False)
     plot_success_curve(args.output_dir / "evaluations.npz", args.output_dir / "success_curve.png")
     print(f"Training took {training_minutes:.1f} minutes")
-    print(f"Deterministic evaluation success rate over {args.final_episodes} episodes: {success:.2f}")
+    print(
+        f"Deterministic success over {args.final_episodes} episodes: {as_trained['success']:.2f} as trained (the planner "
+        f"proposed {as_trained['planned_share']:.0%} of the subgoals, the preference-trained policy the rest); "
+        f"{policy_alone['success']:.2f} with the policy alone (planner off)"
+    )
     print(f"Success curve: {args.output_dir / 'success_curve.png'}; model: {args.output_dir / 'dipper_point_maze.zip'}")
 
 

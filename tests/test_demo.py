@@ -1,0 +1,28 @@
+"""`make demo` (zoo_scripts/demo.py) at a tiny budget: it trains, saves, plots and says who acted."""
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# Slow: the maze entry's label budget (50,000 pairs) labels and trains on many pairs per option even at a tiny budget
+# (8 minutes for 2,400 steps on a loaded 2-core machine).
+@pytest.mark.slow
+def test_demo_trains_and_reports_the_model_and_its_policy_alone(tmp_path):
+    command = [sys.executable, str(REPO / "zoo_scripts" / "demo.py"), "--output-dir", str(tmp_path), "--n-timesteps", "2400"]
+    command += ["--eval-freq", "1200", "--eval-episodes", "1", "--final-episodes", "2"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = re.search(
+        r"success over 2 episodes: (\S+) as trained \(the planner proposed (\d+)% of the subgoals, the preference-trained "
+        r"policy the rest\); (\S+) with the policy alone \(planner off\)",
+        done.stdout,
+    )
+    assert report, done.stdout
+    assert 0 <= float(report[1]) <= 1 and 0 <= int(report[2]) <= 100 and 0 <= float(report[3]) <= 1
+    assert (tmp_path / "success_curve.png").stat().st_size > 0 and (tmp_path / "dipper_point_maze.zip").is_file()
