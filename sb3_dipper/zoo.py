@@ -53,6 +53,7 @@ import pandas as pd
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import CSVOutputFormat
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.dac import DAC
@@ -372,12 +373,17 @@ def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
 
 
 class PauseCheckpointCallback(BaseCallback):
-    """After ``minutes`` of training, save everything training needs to continue and stop training.
+    """After ``minutes`` of training, stop training and save everything training needs to continue.
 
     The checkpoint ``<run>/resume/`` holds the model (``model.zip``), its replay buffers (``replay_buffer.pkl`` and, for
     the hierarchical algorithms, the higher level's files beside it) and the ``VecNormalize`` statistics when the env
     is normalised (``<env>/vecnormalize.pkl``, where rl-zoo3 looks for them). It is written to ``resume.tmp/`` and
     renamed into place, so a run killed while pausing keeps its previous checkpoint whole.
+
+    The checkpoint is saved when training ends, not in ``on_step``: the step that triggers the pause is counted before
+    it is stored, so a checkpoint saved there would count a step its buffers lack. By the end of training our
+    algorithms have stored it (the option ends there); for SB3's off-policy algorithms, which skip storing the step that
+    stopped training, it is stored here, as SB3 would have stored it had training gone on.
 
     :param minutes: training time before the pause, measured from the start of ``learn``
     :param run_folder: the run folder
@@ -390,6 +396,7 @@ class PauseCheckpointCallback(BaseCallback):
         self.run_folder = run_folder
         self.env_name = env_name
         self.paused = False
+        self.saved = False
 
     def _init_callback(self) -> None:
         if not hasattr(self.model, "save_replay_buffer"):
@@ -402,9 +409,30 @@ class PauseCheckpointCallback(BaseCallback):
     def _on_step(self) -> bool:
         if time.monotonic() - self.start < self.seconds:
             return True
-        self.save_checkpoint()
         self.paused = True
         return False
+
+    def _on_training_end(self) -> None:
+        # rl-zoo3 ends training a second time for its first callback (to close the progress bar): save once.
+        if self.paused and not self.saved:
+            self._store_interrupted_step()
+            self.save_checkpoint()
+            self.saved = True
+
+    def _store_interrupted_step(self) -> None:
+        """Store the step SB3's ``collect_rollouts`` counted but returned before storing (``on_step`` said stop)."""
+        model = self.model
+        if isinstance(model, OffPolicyAlgorithm) and "buffer_actions" in self.locals:
+            step = self.locals
+            model._update_info_buffer(step["infos"], step["dones"])
+            model._store_transition(
+                model.replay_buffer,  # type: ignore[arg-type]
+                step["buffer_actions"],
+                step["new_obs"],
+                step["rewards"],
+                step["dones"],
+                step["infos"],
+            )
 
     def save_checkpoint(self) -> None:
         staging = self.run_folder / f"{RESUME_FOLDER}.tmp"
@@ -508,14 +536,14 @@ def continue_evaluations(callbacks: list[BaseCallback], num_timesteps: int, n_en
             callback.best_mean_reward = max(float(np.mean(results)) for results in callback.evaluations_results)
 
 
-def learn_resumed(
-    model: BaseAlgorithm, n_timesteps: int, callbacks: list[BaseCallback], log_interval: int, run_folder: Path
-) -> None:
+def learn_resumed(model: BaseAlgorithm, n_timesteps: int, callbacks: list[BaseCallback], log_interval: int) -> bool:
     """rl-zoo3's ``ExperimentManager.learn`` for a resumed run: train what is left of the budget.
 
     rl-zoo3 restarts a loaded model's step count (``reset_num_timesteps=True``) and trains ``-n`` more steps; a resumed
-    run continues its count. Once the whole budget is trained the resume checkpoint is removed: nothing is left to
-    resume. The rest (log interval, closing the progress bar and the env) is rl-zoo3's.
+    run continues its count. The rest (log interval, closing the progress bar and the env) is rl-zoo3's.
+
+    :return: whether the whole budget is trained (and the run did not pause again): then, once rl-zoo3 has written the
+        final model, nothing is left to resume (:func:`remove_resume_checkpoint`)
     """
     kwargs: dict[str, Any] = {"reset_num_timesteps": False, "callback": callbacks}
     if log_interval > -1:
@@ -532,8 +560,18 @@ def learn_resumed(
         assert model.env is not None
         model.env.close()
     paused_again = any(isinstance(callback, PauseCheckpointCallback) and callback.paused for callback in callbacks)
-    if model.num_timesteps >= n_timesteps and not paused_again:
-        shutil.rmtree(run_folder / RESUME_FOLDER)
+    return model.num_timesteps >= n_timesteps and not paused_again
+
+
+def remove_resume_checkpoint(run_folder: Path) -> None:
+    """Remove the resume checkpoint of a run whose final model is written: it is moved aside, then deleted, so a run
+    killed meanwhile has either the whole checkpoint or none (and its final model either way)."""
+    checkpoint = run_folder / RESUME_FOLDER
+    if checkpoint.exists():
+        retired = run_folder / f"{RESUME_FOLDER}.done"
+        shutil.rmtree(retired, ignore_errors=True)
+        checkpoint.rename(retired)
+        shutil.rmtree(retired)
 
 
 def start_label_page(model: BaseAlgorithm, host: str, port: int) -> Any:
@@ -613,10 +651,16 @@ def _install_run_folder_claim(control: RunControl | None = None) -> None:
                 if run_control.resume is None:
                     super().learn(model)
                 else:
-                    learn_resumed(model, self.n_timesteps, self.callbacks, self.log_interval, run_control.resume)
+                    self.resumed_to_the_end = learn_resumed(model, self.n_timesteps, self.callbacks, self.log_interval)
             finally:
                 if page is not None:
                     page.shutdown()
+
+        def save_trained_model(self, model: BaseAlgorithm) -> None:
+            super().save_trained_model(model)
+            # Only now: a run killed before its final model is written keeps its checkpoint, and --resume still works.
+            if run_control.resume is not None and getattr(self, "resumed_to_the_end", False):
+                remove_resume_checkpoint(run_control.resume)
 
     rl_zoo3.train.ExperimentManager = OwnRunFolderExperimentManager  # type: ignore[misc]
 

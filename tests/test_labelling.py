@@ -1,6 +1,7 @@
 """Preferences from people: the label queue, the asynchronous source, NoisyLabeler, the page, and training on late labels."""
 
 import csv
+import http.client
 import json
 import os
 import shutil
@@ -19,6 +20,7 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_dipper import DIPPER, PIPER, DPOFlat
+from sb3_dipper.common.files import save_npz
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
     PreferenceSource,
@@ -27,7 +29,7 @@ from sb3_dipper.common.preferences import (
     add_new_labels,
     pairs_due,
 )
-from sb3_dipper.labelling.app import LabellingServer, create_app
+from sb3_dipper.labelling.app import MAX_BODY_BYTES, LabellingServer, create_app, serve_in_background
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 from sb3_dipper.labelling.sources import (
     NoisyLabeler,
@@ -186,10 +188,10 @@ def test_a_restarted_source_and_page_resume(tmp_path):
 def test_two_tabs_never_label_one_pair_twice(tmp_path):
     people(tmp_path).label(random_pairs(3))
     client = create_app(tmp_path).test_client()
-    first = client.get("/api/next?client=a").get_json()["pair_id"]
-    second = client.get("/api/next?client=b").get_json()["pair_id"]
+    first = client.post("/api/next", json={"client": "a"}).get_json()["pair_id"]
+    second = client.post("/api/next", json={"client": "b"}).get_json()["pair_id"]
     assert first == 0 and second == 1  # each tab gets its own pair
-    assert client.get("/api/next?client=a").get_json()["pair_id"] == 0  # a reload keeps the tab's pair
+    assert client.post("/api/next", json={"client": "a"}).get_json()["pair_id"] == 0  # a reload keeps the tab's pair
     assert client.post("/api/label", json={"pair_id": 0, "client": "b", "answer": "right"}).status_code == 409
     assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "left"}).status_code == 200
     assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "right"}).status_code == 409
@@ -302,6 +304,50 @@ def test_a_restored_model_gets_only_the_labels_given_since_its_save(tmp_path, mo
     fresh.learn(60)
     assert sorted(fresh.preferences.all_pairs().labels.tolist()) == [0.0, 0.5, 1.0]
     env.close()
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
+def test_labels_handed_over_after_a_checkpoint_come_back_when_it_is_resumed(tmp_path, model_class):
+    """Training took a label after its last save, then was killed: the checkpoint's dataset lacks it, so it comes back."""
+    env = short_maze()
+    model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
+    model.learn(120)
+    queue = LabelQueue(tmp_path / "labels")
+    first, second, third, _ = queue.waiting_ids()
+    queue.record_answer(first, 1.0)
+    model.learn(60, reset_num_timesteps=False)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    queue.record_answer(second, 0.0)
+    queue.record_answer(third, 0.5)
+    model.learn(60, reset_num_timesteps=False)  # takes both, then the run is killed before its next save
+    assert model.preferences.all_pairs().labels.tolist() == [1.0, 0.0, 0.5]
+    assert queue.read_handed()["pair_id"].tolist() == [first, second, third]
+
+    resumed = model_class.load(tmp_path / "model.zip", env=env)
+    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+    resumed.learn(60, reset_num_timesteps=False)
+    assert resumed.preferences.all_pairs().labels.tolist() == [1.0, 0.0, 0.5]
+    assert resumed.preferences.handed_ids.tolist() == [first, second, third]
+    env.close()
+
+
+def test_hand_edited_labels_and_queued_pairs_are_checked_as_preference_files_are(tmp_path):
+    source = people(tmp_path)
+    source.label(random_pairs(2))
+    queue = LabelQueue(tmp_path)
+    queue.record_answer(0, 1.0)
+    arrays = dict(np.load(queue.labels_path))
+    save_npz(queue.labels_path, {**arrays, "label": np.array([2.0], np.float32)})
+    with pytest.raises(ValueError, match=r"labels.npz: label must hold 0, 0.5, 1 or NaN \(skipped\), got \[2.0\]"):
+        source.collect()
+
+    save_npz(queue.labels_path, arrays)
+    pair = dict(np.load(queue.pair_path(0)))
+    pair["observations/observation"][0, 0, 1, 0] = np.nan
+    save_npz(queue.pair_path(0), pair)
+    with pytest.raises(ValueError, match=r"queued pair .*00000000.npz: observations/observation holds NaN"):
+        source.collect()
 
 
 def test_noise_is_chosen_from_the_constructor(maze_env):
@@ -490,6 +536,9 @@ def test_label_page_flag_parses_host_and_port():
     assert split_run_control(["--label-page", "0.0.0.0:0"])[0].label_page == ("0.0.0.0", 0)
 
 
+JSON_HEADERS = {"Content-Type": "application/json"}
+
+
 def zoo_train(tmp_path: Path, *params: str, label_page: str = "127.0.0.1:0") -> subprocess.Popen:
     command = [sys.executable, "-m", "sb3_dipper.zoo", "train", "--algo", "dipper", "--env", "PointMazeFourRooms-v0"]
     command += ["-f", str(tmp_path / "logs"), "--seed", "0", "-n", "200000", "--eval-freq", "-1", "--label-page", label_page]
@@ -513,7 +562,8 @@ def test_training_serves_the_labelling_page_and_uses_its_labels(tmp_path):
             pytest.fail("".join(lines[-40:]))
         pair_id = None
         for _ in range(600):  # training queues pairs once its first higher-level trajectories end
-            pair_id = json.loads(urllib.request.urlopen(url + "api/next?client=test", timeout=5).read())["pair_id"]
+            claim = urllib.request.Request(url + "api/next", data=b'{"client": "test"}', headers=JSON_HEADERS)
+            pair_id = json.loads(urllib.request.urlopen(claim, timeout=5).read())["pair_id"]
             if pair_id is not None:
                 break
             time.sleep(0.2)
@@ -521,7 +571,7 @@ def test_training_serves_the_labelling_page_and_uses_its_labels(tmp_path):
         request = urllib.request.Request(
             url + "api/label",
             data=json.dumps({"pair_id": pair_id, "client": "test", "answer": "left"}).encode(),
-            headers={"Content-Type": "application/json"},
+            headers=JSON_HEADERS,
         )
         assert json.loads(urllib.request.urlopen(request, timeout=5).read())["ok"]
         queue = LabelQueue(directory)
@@ -545,3 +595,108 @@ def test_label_page_without_people_to_ask_is_refused_before_training(tmp_path):
     assert training.returncode != 0
     assert "--label-page: DIPPER's preference_source sends no pairs to people" in output
     assert "total_timesteps" not in output  # refused before the first step
+
+
+# ---------------------------------------------------------------------------------------------------- the page's defences
+
+
+@pytest.fixture
+def served(tmp_path):
+    """Three queued pairs and the page serving them on loopback from this process: ``(port, queue directory)``."""
+    people(tmp_path).label(random_pairs(3))
+    server = serve_in_background(tmp_path, "127.0.0.1", 0)
+    yield server.server_port, tmp_path
+    server.shutdown()
+
+
+def request_page(
+    port: int, method: str, path: str, body: bytes | None = None, headers: dict[str, str] | None = None
+) -> tuple[int, bytes]:
+    """One request to the page over loopback (bounded by a timeout): its status and body."""
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        connection.request(method, path, body=body, headers={"Content-Type": "application/json", **(headers or {})})
+        response = connection.getresponse()
+        return response.status, response.read()
+    finally:
+        connection.close()
+
+
+def label_body(pair_id: object = 0, client: str = "x", answer: str = "left") -> bytes:
+    return json.dumps({"pair_id": pair_id, "client": client, "answer": answer}).encode()
+
+
+def test_the_page_answers_only_requests_that_name_this_machine(served):
+    """DNS rebinding: a page on evil.example, its name pointed at 127.0.0.1, sends Host: evil.example."""
+    port, directory = served
+    for method, path, body in [("POST", "/api/label", label_body()), ("GET", "/api/status", None), ("GET", "/", None)]:
+        status, reply = request_page(port, method, path, body, {"Host": f"evil.example:{port}"})
+        assert status == 400 and b"Unknown Host" in reply
+    assert LabelQueue(directory).answers().pair_ids.tolist() == []
+    for host in (f"localhost:{port}", f"127.0.0.1:{port}"):
+        assert request_page(port, "GET", "/api/status", headers={"Host": host})[0] == 200
+    assert request_page(port, "POST", "/api/label", label_body(), {"Host": f"localhost:{port}"})[0] == 200
+
+
+def test_other_sites_can_neither_claim_nor_label_pairs(served):
+    port, directory = served
+    # A claim is a POST: an <img src=".../api/next?client=..."> on another page claims nothing.
+    assert request_page(port, "GET", "/api/next?client=img")[0] == 405
+    assert LabellingServer(directory).claims.holder(0) is None
+    own_origin = {"Origin": f"http://127.0.0.1:{port}", "Sec-Fetch-Site": "same-origin"}
+    for refused in ({"Origin": "http://evil.example"}, {"Origin": "null"}, {"Sec-Fetch-Site": "cross-site"}):
+        for path, body in [("/api/next", b'{"client": "evil"}'), ("/api/label", label_body(client="evil"))]:
+            status, reply = request_page(port, "POST", path, body, refused)
+            assert status == 403 and b"refused" in reply
+        assert request_page(port, "GET", "/api/pair/0/left.png", headers=refused)[0] == 403
+    assert LabelQueue(directory).answers().pair_ids.tolist() == []
+    status, reply = request_page(port, "POST", "/api/next", b'{"client": "tab"}', own_origin)
+    assert status == 200 and json.loads(reply)["pair_id"] == 0
+    assert request_page(port, "POST", "/api/label", label_body(client="tab"), own_origin)[0] == 200
+
+
+def test_request_bodies_are_small_json_objects_with_integer_pair_ids(served):
+    port, directory = served
+    status, reply = request_page(port, "POST", "/api/label", b"x" * (MAX_BODY_BYTES + 1))
+    assert status == 413 and "error" in json.loads(reply)
+    for body in (b"[1, 2]", b'"left"', b"not json"):
+        status, reply = request_page(port, "POST", "/api/label", body)
+        assert status == 400 and "JSON object" in json.loads(reply)["error"]
+    status, reply = request_page(port, "POST", "/api/label", label_body(pair_id=True))
+    assert status == 400 and "pair_id (int)" in json.loads(reply)["error"]
+    assert request_page(port, "POST", "/api/label", label_body(pair_id=1.0))[0] == 400
+    assert LabelQueue(directory).answers().pair_ids.tolist() == []
+
+
+def test_the_page_never_runs_in_debug_mode_whatever_the_environment_says(tmp_path):
+    """FLASK_DEBUG, a .flaskenv in the working directory and a .env above it would turn on Werkzeug's debugger."""
+    people(tmp_path / "labels").label(random_pairs(1))
+    work = tmp_path / "work"
+    work.mkdir()
+    (tmp_path / ".env").write_text("FLASK_DEBUG=1\n")
+    (work / ".flaskenv").write_text("FLASK_DEBUG=1\nFLASK_RUN_PORT=5001\n")
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "sb3_dipper.labelling.app", "--run", str(tmp_path / "labels"), "--port", str(port)],
+        env={**os.environ, "FLASK_DEBUG": "1", "PYTHONPATH": str(REPO)},
+        cwd=work,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 180  # importing the page's packages takes long on a busy machine
+        while True:
+            try:
+                status = request_page(port, "GET", "/api/status")[0]
+                break
+            except OSError:
+                assert server.poll() is None, f"the labelling page exited with {server.returncode}"
+                assert time.monotonic() < deadline, "the labelling page did not start in 180 s"
+                time.sleep(0.2)
+        assert status == 200
+        status, reply = request_page(port, "GET", "/console")
+        assert status == 404 and b"Werkzeug" not in reply
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+    assert create_app(tmp_path / "labels").debug is False

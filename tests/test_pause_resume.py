@@ -12,9 +12,21 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 import pytest
+import rl_zoo3
+from stable_baselines3 import SAC
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
 
-from sb3_dipper.zoo import RESUME_FOLDER, RESUME_MODEL, continue_evaluations, set_aside_part, split_run_control
+from sb3_dipper import DIPPER, HIER
+from sb3_dipper.zoo import (
+    RESUME_FOLDER,
+    RESUME_MODEL,
+    PauseCheckpointCallback,
+    continue_evaluations,
+    saved_steps,
+    set_aside_part,
+    split_run_control,
+)
+from tests.conftest import short_maze, tiny_model
 from tests.test_benchmark import ENV_ID, learning_command, run_folder
 
 
@@ -115,3 +127,72 @@ def test_an_algorithm_without_a_replay_buffer_cannot_pause(tmp_path):
     )  # fmt: skip
     assert result.returncode != 0
     assert "pausing and resuming is for off-policy algorithms" in result.stderr
+
+
+def stored_steps(buffer) -> int:
+    return (buffer.buffer_size if buffer.full else buffer.pos) * buffer.n_envs
+
+
+@pytest.mark.parametrize("model_class", [SAC, HIER, DIPPER])
+def test_the_pause_checkpoint_stores_every_step_it_counts(model_class, tmp_path):
+    """The step whose on_step pauses training is counted: the checkpoint's buffers hold it too."""
+    env = short_maze(n_envs=2)
+    if model_class is SAC:
+        model = SAC("MultiInputPolicy", env, learning_starts=20, buffer_size=500, policy_kwargs=dict(net_arch=[16]))
+    else:
+        model = tiny_model(model_class, env)
+    pause = PauseCheckpointCallback(0.0, tmp_path, "env")
+    pause.seconds = 0.5  # some steps in, mid-option
+    model.learn(100_000, callback=pause)
+    assert pause.paused and 0 < model.num_timesteps < 100_000
+    saved = model_class.load(tmp_path / RESUME_FOLDER / RESUME_MODEL, env=env)
+    saved.load_replay_buffer(tmp_path / RESUME_FOLDER / "replay_buffer.pkl")
+    assert stored_steps(saved.replay_buffer) == saved.num_timesteps == model.num_timesteps
+    env.close()
+
+
+RESUME_SCRIPT = """
+import sys
+from pathlib import Path
+
+from stable_baselines3 import SAC
+
+from sb3_dipper import zoo
+
+run, *argv = sys.argv[1:]
+save = SAC.save
+
+
+def save_and_record(self, path, *args, **kwargs):
+    # The final model: rl-zoo3 saves it as <run>/<env>. Record whether the resume checkpoint was still there.
+    if Path(path) == Path(run) / "Pendulum-v1":
+        (Path(run) / "checkpoint_at_final_save").write_text(str((Path(run) / "resume").is_dir()))
+    save(self, path, *args, **kwargs)
+
+
+SAC.save = save_and_record
+sys.argv = ["sb3-dipper-zoo", "train", *argv]
+zoo.main()
+"""
+
+
+def test_a_resumed_run_keeps_its_checkpoint_until_its_final_model_is_written(tmp_path):
+    """Killed between the end of training and the final model, a resumed run must still be resumable."""
+    conf = Path(rl_zoo3.__file__).parent / "hyperparams" / "sac.yml"
+    flags = ["--algo", "sac", "--env", "Pendulum-v1", "--conf-file", str(conf), "-f", str(tmp_path), "--seed", "0"]
+    flags += ["-n", "300", "--eval-freq", "-1", "-params", "learning_starts:100", "buffer_size:1000", "batch_size:32"]
+    paused = subprocess.run(
+        [sys.executable, "-m", "sb3_dipper.zoo", "train", *flags, "--pause-after-minutes", "0"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert paused.returncode == 0, paused.stderr[-3000:]
+    run = tmp_path / "sac" / "Pendulum-v1_1"
+    assert (run / RESUME_FOLDER / RESUME_MODEL).is_file()
+    resumed = subprocess.run(
+        [sys.executable, "-c", RESUME_SCRIPT, str(run), *flags, "--resume", str(run)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert (run / "checkpoint_at_final_save").read_text() == "True"
+    assert saved_steps(run / "Pendulum-v1.zip") == (300, 300)
+    assert not (run / RESUME_FOLDER).exists()  # removed once the final model was written

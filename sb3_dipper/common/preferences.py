@@ -167,9 +167,19 @@ class PreferenceSource(ABC):
         """Queued pairs whose labels arrived since the last call, labelled (``None``: none)."""
         return None
 
-    def dataset_restored(self) -> None:
+    @property
+    def handed_ids(self) -> np.ndarray:
+        """The ids of the pairs :meth:`collect` handed to training, in order (saved with the dataset)."""
+        return np.zeros(0, dtype=np.int64)  # a synchronous source hands nothing late
+
+    def dataset_restored(self, handed_ids: np.ndarray | None = None) -> None:
         """The model's dataset was just restored from its saved file (``load_replay_buffer``): the pairs this source
-        handed to training before that save are in it already, so :meth:`collect` must not hand them again."""
+        handed to training before that save are in it already, so :meth:`collect` must not hand them again; those
+        handed after it are not, so :meth:`collect` hands them again.
+
+        :param handed_ids: the dataset's record of the pairs handed to it (:attr:`PreferenceDataset.handed_ids`);
+            ``None`` for a file saved before datasets kept that record
+        """
         return None  # a synchronous source hands nothing late, so nothing twice
 
 
@@ -178,6 +188,7 @@ def add_new_labels(dataset: PreferenceDataset, source: PreferenceSource, pairs: 
     arrived = source.collect()
     if arrived is not None:
         dataset.add(arrived)
+    dataset.handed_ids = source.handed_ids
     if pairs is not None:
         dataset.add(pairs.select(np.flatnonzero(~np.isnan(pairs.labels))))
 
@@ -207,6 +218,9 @@ class PrimitiveInTheLoopLabeler(PreferenceSource):
 class PreferenceDataset:
     """The labelled pairs D, filled up to a label budget; saved and loaded as npz without pickle.
 
+    :attr:`handed_ids` records which pairs a source that labels late (people) handed to the dataset, so a dataset
+    restored from a checkpoint tells the source which labels it holds and which, given after the save, it lacks.
+
     :param capacity: the label budget (most pairs ever stored)
     """
 
@@ -216,6 +230,8 @@ class PreferenceDataset:
         self.capacity = capacity
         self._pairs: TrajectoryPairs | None = None
         self.size = 0
+        # None: not recorded (a file saved before the record existed).
+        self.handed_ids: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.size
@@ -253,6 +269,8 @@ class PreferenceDataset:
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The labelled pairs as named arrays (the npz schema of :meth:`load`)."""
         arrays: dict[str, np.ndarray] = {"capacity": np.array(self.capacity)}
+        if self.handed_ids is not None:
+            arrays["handed_pair_ids"] = np.asarray(self.handed_ids, dtype=np.int64)
         pairs = self.all_pairs()
         if pairs is not None:
             arrays.update({f"observations/{key}": value for key, value in pairs.observations.items()})
@@ -276,7 +294,7 @@ class PreferenceDataset:
         Schema: ``labels (N,)`` in {0, 0.5, 1}; ``mask (2, N, T)``; ``actions``, ``reached_actions`` ``(2, N, T, d)``;
         ``next_achieved_goals (2, N, T, goal_dim)``; ``observations/<key> (2, N, T, ...)`` for every observation key
         (at least ``observation``, ``achieved_goal`` and ``desired_goal``, which holds the pair's goal); optional
-        ``capacity`` (the label budget). Values must be finite.
+        ``capacity`` (the label budget) and ``handed_pair_ids`` (:attr:`handed_ids`). Values must be finite.
 
         :param path: the npz file
         :param capacity: the label budget (default: the file's); pairs beyond it are dropped, with a warning
@@ -306,10 +324,16 @@ class PreferenceDataset:
         stored_capacity = arrays.pop("capacity", np.array(0))
         if stored_capacity.shape != () or stored_capacity.dtype.kind not in "iu" or stored_capacity < 0:
             raise ValueError(f"Malformed preference file {source}: capacity must be one integer >= 0, got {stored_capacity}")
+        handed_ids = arrays.pop("handed_pair_ids", None)
+        if handed_ids is not None and (handed_ids.ndim != 1 or handed_ids.dtype.kind not in "iu"):
+            raise ValueError(f"Malformed preference file {source}: handed_pair_ids must be a vector of integers")
         if not arrays:
-            return cls(capacity or max(int(stored_capacity), 1))
-        pairs = _pairs_from_arrays(arrays, source, shapes)
+            dataset = cls(capacity or max(int(stored_capacity), 1))
+            dataset.handed_ids = handed_ids
+            return dataset
+        pairs = pairs_from_arrays(arrays, source, shapes)
         dataset = cls(capacity or max(int(stored_capacity), len(pairs)))
+        dataset.handed_ids = handed_ids
         if len(pairs) > dataset.capacity:
             warnings.warn(
                 f"{source} holds {len(pairs)} labelled pairs but {capacity_name}={dataset.capacity}: kept the first "
@@ -476,7 +500,14 @@ def _write(store: np.ndarray, values: np.ndarray, start: int, count: int) -> Non
         store[:, start : start + count] = values[:, :count]
 
 
-def _pairs_from_arrays(arrays: dict[str, np.ndarray], source: str, shapes: PairShapes | None) -> TrajectoryPairs:
+def pairs_from_arrays(arrays: dict[str, np.ndarray], source: str, shapes: PairShapes | None = None) -> TrajectoryPairs:
+    """Pairs from named arrays (the schema of :meth:`PreferenceDataset.load`), every array checked: finite numbers,
+    labels in {0, 0.5, 1}, a 0/1 mask, consistent shapes (given ``shapes``, the model's).
+
+    :param arrays: the named arrays
+    :param source: where they come from (a file), named in every message
+    :param shapes: the shapes the pairs must have (``None``: consistent with each other)
+    """
     observation_keys = [key.split("/", 1)[1] for key in arrays if key.startswith("observations/")]
     required_observations = GOAL_KEYS if shapes is None else tuple(shapes.observations)
     required = ["labels", "mask", "actions", "reached_actions", "next_achieved_goals"]

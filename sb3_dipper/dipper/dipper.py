@@ -632,6 +632,6 @@ class DIPPER(HierarchicalAlgorithm):
             self.trajectory_buffer.load_state_dict(trajectories)
             self.preferences = preferences
             if self._labeler is not None:
-                self._labeler.dataset_restored()
+                self._labeler.dataset_restored(self.preferences.handed_ids)
 
         return install

@@ -449,7 +449,7 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         if self._labeler is None and self.env is not None:
             self._labeler = self._new_labeler()
         if self._labeler is not None:
-            self._labeler.dataset_restored()
+            self._labeler.dataset_restored(self.preferences.handed_ids)
 
 
 def episode_length(env: VecEnv) -> int:

@@ -9,11 +9,20 @@ toward the pair's goal (see :mod:`sb3_dipper.labelling.render`), and buttons, wi
 pairs. A pair is handed to one tab at a time (each tab has its own client id), and the first answer for a pair is the
 only one recorded: a second, from another tab, is refused. Answers go to ``labels.npz`` at once, so a restarted page
 goes on with the pairs nobody answered; skipped pairs are not shown again unless ``--show-skipped``.
+
+The page is for the person at this machine. It listens on 127.0.0.1 unless ``--host`` says otherwise; it answers only
+requests whose ``Host`` header names the address it serves on, ``localhost`` or an IP address (so a web page whose
+domain was made to point at this machine, DNS rebinding, is refused); its API answers only the page itself (``Origin``
+and ``Sec-Fetch-Site`` must say same-origin, where a browser sends them), and a pair is claimed by a POST, so another
+site's links and images cannot claim or label pairs. Request bodies are limited to :data:`MAX_BODY_BYTES`. Flask's
+debug mode and its ``.env`` / ``.flaskenv`` loading are never used, whatever the environment says. To label from
+another machine, forward the port over SSH (``ssh -L 5000:127.0.0.1:5000 host``) rather than serving on ``0.0.0.0``.
 """
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import math
 import threading
 import time
@@ -22,6 +31,7 @@ from typing import Any
 
 import numpy as np
 from flask import Flask, Response, abort, jsonify, request
+from werkzeug.exceptions import HTTPException
 from werkzeug.serving import BaseWSGIServer, make_server
 
 from sb3_dipper.common.files import write_bytes_atomically
@@ -30,6 +40,10 @@ from sb3_dipper.labelling.render import SIDES, PairRenderer
 
 # A pair handed to a tab is kept for it this long; after that (a closed tab) another tab may have it.
 CLAIM_SECONDS = 600.0
+# The largest request body read: the page's own requests are a few hundred bytes.
+MAX_BODY_BYTES = 16 * 1024
+# Host names that are this machine whatever the page is served on.
+LOCAL_HOST_NAMES = ("localhost", "127.0.0.1", "::1")
 
 PAGE = """<!doctype html>
 <html lang="en">
@@ -75,7 +89,8 @@ function show(counts) {
   document.getElementById("waiting").textContent = counts.waiting;
 }
 async function next() {
-  const response = await fetch("api/next?client=" + encodeURIComponent(client));
+  const response = await fetch("api/next", {method: "POST", headers: {"Content-Type": "application/json"},
+    body: JSON.stringify({client: client})});
   const data = await response.json();
   show(data.counts);
   current = data.pair_id;
@@ -203,10 +218,66 @@ class LabellingServer:
         return cached.read_bytes()
 
 
-def create_app(directory: str | Path, show_skipped: bool = False) -> Flask:
-    """The labelling page of the label queue ``directory`` (arguments as :class:`LabellingServer`)."""
+def allowed_host(host_header: str, served_on: str) -> bool:
+    """Whether a request's ``Host`` header names this server: the address it serves on, a local name, or (served on
+    every address) any IP address. A domain name that resolves here by DNS rebinding is none of these.
+
+    :param host_header: the request's ``Host`` header (``name[:port]``, ``[v6]:port``)
+    :param served_on: the address the server listens on
+    """
+    name = host_header.rsplit(":", 1)[0] if host_header.count(":") == 1 else host_header
+    name = name.removeprefix("[").split("]", 1)[0].lower()
+    if name in (*LOCAL_HOST_NAMES, served_on.lower()):
+        return True
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return served_on in ("0.0.0.0", "::")
+
+
+def refuse_other_sites(host: str) -> None:
+    """Abort a request that another site could have sent: a foreign ``Host``, or a cross-origin call of the API.
+
+    :param host: the address the page is served on
+    """
+    if not allowed_host(request.host, host):
+        abort(400, f"Unknown Host {request.host!r}: open the page as http://127.0.0.1:PORT or http://localhost:PORT")
+    if not request.path.startswith("/api/"):
+        return
+    origin = request.headers.get("Origin")
+    if origin is not None and origin != request.host_url.rstrip("/"):
+        abort(403, f"Requests from {origin} are refused: the API answers the labelling page only")
+    if request.headers.get("Sec-Fetch-Site", "same-origin") not in ("same-origin", "none"):
+        abort(403, "Requests from other sites are refused: the API answers the labelling page only")
+
+
+def json_object() -> dict[str, Any]:
+    """The request's JSON body, which must be an object (anything else is a 400 naming the fix)."""
+    body = request.get_json(silent=True)
+    if not isinstance(body, dict):
+        abort(400, "Send a JSON object (Content-Type: application/json)")
+    return body
+
+
+def create_app(directory: str | Path, show_skipped: bool = False, host: str = "127.0.0.1") -> Flask:
+    """The labelling page of the label queue ``directory`` (arguments as :class:`LabellingServer`).
+
+    :param directory: the label queue directory
+    :param show_skipped: show skipped pairs again
+    :param host: the address the page is served on, which the ``Host`` header of a request may name
+    """
     server = LabellingServer(directory, show_skipped)
     app = Flask("sb3_dipper.labelling")
+    # Set here, not from FLASK_DEBUG or a .flaskenv: debug mode would show tracebacks and offer Werkzeug's console.
+    app.debug = False
+    app.config["MAX_CONTENT_LENGTH"] = MAX_BODY_BYTES
+
+    app.before_request(lambda: refuse_other_sites(host))
+
+    @app.errorhandler(HTTPException)
+    def json_error(error: HTTPException) -> tuple[Response, int]:
+        return jsonify(error=error.description), error.code or 500
 
     @app.get("/")
     def page() -> Response:
@@ -217,18 +288,19 @@ def create_app(directory: str | Path, show_skipped: bool = False) -> Flask:
         with server.lock:
             return jsonify(counts=server.counts())
 
-    @app.get("/api/next")
+    @app.post("/api/next")
     def next_pair() -> Response:
-        client = request.args.get("client", "")
-        if not client:
-            abort(400, "client is required")
+        client = json_object().get("client")
+        if not isinstance(client, str) or not client:
+            abort(400, "Send client (a non-empty string): the id of the tab that claims the pair")
         return jsonify(server.next_pair(client))
 
     @app.post("/api/label")
     def label() -> tuple[Response, int]:
-        body: dict[str, Any] = request.get_json(silent=True) or {}
+        body = json_object()
         pair_id, client, answer = body.get("pair_id"), body.get("client"), body.get("answer")
-        if not isinstance(pair_id, int) or not isinstance(client, str) or answer not in ANSWERS:
+        # bool is an int in Python: true would label pair 1.
+        if type(pair_id) is not int or not isinstance(client, str) or answer not in ANSWERS:
             return jsonify(error=f"Send pair_id (int), client (str) and answer (one of {sorted(ANSWERS)})"), 400
         reply, status_code = server.answer(pair_id, client, answer)
         return jsonify(reply), status_code
@@ -254,7 +326,7 @@ def serve_in_background(directory: str | Path, host: str = "127.0.0.1", port: in
     :return: the running server: ``server.shutdown()`` stops it
     """
     Path(directory).mkdir(parents=True, exist_ok=True)
-    server = make_server(host, port, create_app(directory), threaded=True)
+    server = make_server(host, port, create_app(directory, host=host), threaded=True)
     threading.Thread(target=server.serve_forever, name="labelling-page", daemon=True).start()
     return server
 
@@ -271,9 +343,15 @@ def main(argv: list[str] | None = None) -> None:
         directory = labels_directory(args.run)
     except FileNotFoundError as error:
         parser.error(str(error))
-    app = create_app(directory, args.show_skipped)
-    # Flask's own (werkzeug) server: the page serves one person on this machine, not the public.
-    app.run(host=args.host, port=args.port, threaded=True)
+    app = create_app(directory, args.show_skipped, args.host)
+    # Werkzeug's server, without Flask's app.run: that would read FLASK_DEBUG and .env files, and could start the
+    # debugger. The page serves one person on this machine, not the public.
+    server = make_server(args.host, args.port, app, threaded=True)
+    print(f"Labelling page of {directory}: http://{args.host}:{server.server_port}", flush=True)
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
 
 
 if __name__ == "__main__":

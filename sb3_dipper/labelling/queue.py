@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from sb3_dipper.common.files import read_npz, save_npz, write_bytes_atomically
-from sb3_dipper.common.preferences import TrajectoryPairs
+from sb3_dipper.common.preferences import TrajectoryPairs, pairs_from_arrays
 
 # Who labelled a pair (the ``labeller`` column of handed.npz).
 PERSON = 0
@@ -108,19 +108,16 @@ class LabelQueue:
         save_npz(self.pair_path(pair_id), arrays)
 
     def read_pair(self, pair_id: int, label: float = float("nan")) -> TrajectoryPairs:
-        """The queued pair ``pair_id`` (a batch of one) with ``label``."""
-        arrays = read_npz(self.pair_path(pair_id), "queued pair", "Was the label queue directory edited by hand?")
+        """The queued pair ``pair_id`` (a batch of one) with ``label``, checked as a preference file's pairs are."""
+        path = self.pair_path(pair_id)
+        arrays = read_npz(path, "queued pair", "Was the label queue directory edited by hand?")
         missing = [key for key in ("actions", "reached_actions", "next_achieved_goals", "mask") if key not in arrays]
         if missing or not any(key.startswith("observations/") for key in arrays):
-            raise ValueError(f"Malformed queued pair {self.pair_path(pair_id)}: missing {missing or 'observations'}")
-        return TrajectoryPairs(
-            observations={key.split("/", 1)[1]: value for key, value in arrays.items() if key.startswith("observations/")},
-            actions=arrays["actions"],
-            reached_actions=arrays["reached_actions"],
-            next_achieved_goals=arrays["next_achieved_goals"],
-            mask=arrays["mask"].astype(bool),
-            labels=np.array([label], dtype=np.float32),
-        )
+            raise ValueError(f"Malformed queued pair {path}: missing {missing or 'observations'}")
+        # The label is checked with labels.npz (answers); a placeholder stands in for the pair's checks.
+        pair = pairs_from_arrays({**arrays, "labels": np.zeros(1, np.float32)}, f"queued pair {path}")
+        pair.labels = np.array([label], dtype=np.float32)
+        return pair
 
     def queued_ids(self) -> list[int]:
         """Every pair id with a file in ``pairs/``, ascending."""
@@ -148,6 +145,15 @@ class LabelQueue:
             for key in ("pair_id", "label", "time"):
                 if key not in arrays or arrays[key].ndim != 1 or len(arrays[key]) != len(arrays["pair_id"]):
                     raise ValueError(f"Malformed label file {self.labels_path}: {key} must be a vector, one per pair_id")
+            labels = arrays["label"]
+            # The values PreferenceDataset.load accepts, and NaN for a skipped pair.
+            if labels.dtype.kind != "f" or not np.all(np.isnan(labels) | np.isin(labels, (0.0, 0.5, 1.0))):
+                raise ValueError(
+                    f"Malformed label file {self.labels_path}: label must hold 0, 0.5, 1 or NaN (skipped), got "
+                    f"{np.unique(labels).tolist()}. Correct the hand-edited labels, or restore the file from a backup."
+                )
+            if arrays["pair_id"].dtype.kind not in "iu":
+                raise ValueError(f"Malformed label file {self.labels_path}: pair_id must hold integers")
             self._answers = Answers(
                 arrays["pair_id"].astype(np.int64), arrays["label"].astype(np.float32), arrays["time"].astype(np.float64)
             )

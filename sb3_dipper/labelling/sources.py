@@ -98,8 +98,9 @@ class QueuedPreferenceSource(PreferenceSource):
     none without a script. A source started on a directory with queued pairs takes over those still waiting; with
     ``reuse_labels`` it also hands training every label already given (a run restarted from scratch keeps people's
     work). A model whose dataset is restored from its saved file (``load_replay_buffer``, as when a checkpoint
-    resumes) holds the pairs handed to training before that save already: those are not handed again, the labels
-    given since are.
+    resumes) holds the pairs handed to training before that save already, as the file records
+    (:attr:`~sb3_dipper.common.preferences.PreferenceDataset.handed_ids`): those are not handed again; every other
+    label, given since the save or handed to training after it and lost with a killed run, is.
 
     :param directory: the label queue directory, shared with the page (``sb3-dipper-label --run DIRECTORY``)
     :param person_fraction: the share of new pairs sent to people; the script labels the others at once (mixed mode)
@@ -135,6 +136,10 @@ class QueuedPreferenceSource(PreferenceSource):
         self._queue: LabelQueue | None = None
         self._pending: set[int] = set()
         self._handed: set[int] = set()
+        # The labels not to hand over: those in the directory at take-over when not reuse_labels.
+        self._not_reused: set[int] = set()
+        # The pairs collect handed to training, in order.
+        self._delivered: list[int] = []
         self._next_id = 0
         self._rng = np.random.default_rng(seed)
 
@@ -147,14 +152,25 @@ class QueuedPreferenceSource(PreferenceSource):
             if self.queue_info:
                 queue.write_info(self.queue_info)
             self._pending = set(queue.waiting_ids())
-            self._handed = set() if self.reuse_labels else set(queue.answers().pair_ids.tolist())
+            self._not_reused = set() if self.reuse_labels else set(queue.answers().pair_ids.tolist())
+            self._handed = set(self._not_reused)
             self._next_id = queue.next_free_id()
             self._queue = queue
         return self._queue
 
-    def dataset_restored(self) -> None:
-        handed = self.queue.read_handed()  # after the first use's take-over, which this may be
-        self._handed.update(handed["pair_id"][handed["labeller"] == PERSON].tolist())
+    @property
+    def handed_ids(self) -> np.ndarray:
+        return np.array(self._delivered, dtype=np.int64)
+
+    def dataset_restored(self, handed_ids: np.ndarray | None = None) -> None:
+        queue = self.queue  # after the first use's take-over, which this may be
+        if handed_ids is None:
+            # A file saved before datasets recorded their pairs: the directory's record of hand-overs stands in (it
+            # also lists pairs handed after that save, which are then not handed again).
+            handed = queue.read_handed()
+            handed_ids = handed["pair_id"][handed["labeller"] == PERSON]
+        self._delivered = [int(pair_id) for pair_id in handed_ids]
+        self._handed = self._not_reused | set(self._delivered)
 
     @property
     def pending(self) -> int:
@@ -193,6 +209,7 @@ class QueuedPreferenceSource(PreferenceSource):
             return None
         batch = concatenate_pairs([queue.read_pair(pair_id, answers[pair_id]) for pair_id in arrived])
         self._handed.update(arrived)
+        self._delivered.extend(arrived)
         queue.append_handed(np.array(arrived), batch.labels, np.full(len(arrived), PERSON))
         return batch
 
@@ -292,7 +309,7 @@ def preference_source_from(
         spec._rng = np.random.default_rng(spec.seed)
         if isinstance(spec, QueuedPreferenceSource):
             spec.queue_info = queue_info(env, subgoal_space)
-            spec._pending, spec._handed, spec._queue = set(), set(), None
+            spec._pending, spec._handed, spec._not_reused, spec._delivered, spec._queue = set(), set(), set(), [], None
     return spec
 
 
