@@ -10,7 +10,8 @@ TEST_WORKERS ?= 2
 # (pytest, ruff, mypy, ray, minari), so a demo machine never installs them.
 STAMP := $(VENV)/.sb3-dipper-installed
 TEST_STAMP := $(VENV)/.sb3-dipper-tests-installed
-# The documentation tools (sphinx, its theme, myst-parser for the Markdown changelog), for `make docs` only.
+# The documentation tools (sphinx, its theme, myst-parser for the Markdown changelog, a packaged MathJax) and flask
+# for the labelling page's API page, for `make docs` only.
 DOCS_STAMP := $(VENV)/.sb3-dipper-docs-installed
 export MUJOCO_GL ?= egl
 
