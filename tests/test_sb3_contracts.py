@@ -150,6 +150,29 @@ def test_resuming_after_a_callback_stop_stores_the_true_observations_and_one_sub
         np.testing.assert_array_equal(subgoals[step], subgoals[start])
 
 
+# ---------------------------------------------------------------------------------------------------- updates
+
+
+# (n_envs, learning_starts, train_freq, gradient_steps, option_steps, total steps): the first training rounds after the
+# warm-up, with a learning_starts that is not a multiple of train_freq.
+WARM_UP_CASES = [(1, 29, 2, 3, 4, 36), (2, 30, 1, 2, 5, 40)]
+
+
+@pytest.mark.parametrize(("n_envs", "learning_starts", "train_freq", "gradient_steps", "option_steps", "steps"), WARM_UP_CASES)
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_the_lower_level_owes_no_updates_for_the_warm_up_as_sb3_sac(
+    model_class, n_envs, learning_starts, train_freq, gradient_steps, option_steps, steps
+):
+    settings = dict(learning_starts=learning_starts, train_freq=train_freq, gradient_steps=gradient_steps, batch_size=16)
+    sac = SAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=n_envs), policy_kwargs=dict(net_arch=[8]), seed=0, **settings)
+    sac.learn(steps)
+    model = tiny_model(model_class, short_maze(n_envs=n_envs), option_steps=option_steps, **settings)
+    model.learn(steps)
+    assert model.num_timesteps == sac.num_timesteps == steps
+    # Before, the first round also ran the warm-up's learning_starts x gradient_steps / train_freq updates at once.
+    assert model.lower._n_updates == sac._n_updates > 0
+
+
 # ---------------------------------------------------------------------------------------------------- saved state
 
 

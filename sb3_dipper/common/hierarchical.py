@@ -557,6 +557,10 @@ class HierarchicalAlgorithm(CheckedLoading):
         """The option layer's sink: count the step, run callbacks, fill the lower buffer, log episodes."""
         self.num_timesteps += self.n_envs
         self._low_steps_since_train += 1
+        if self.num_timesteps <= self.learning_starts:
+            # As in SB3's SAC, the warm-up owes no lower updates: only windows of train_freq steps (counted from the
+            # start, as SB3's rollouts) that end after learning_starts do, so the first round does not catch up on them.
+            self._low_steps_since_train %= self.train_freq
         dones, infos = transition.base_dones, transition.infos
         self._callback.update_locals(locals())
         if not self._callback.on_step():
