@@ -18,7 +18,6 @@
 from __future__ import annotations
 
 import base64
-import inspect
 import io
 import json
 import pathlib
@@ -35,6 +34,7 @@ from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.files import save_model_atomically
+from sb3_dipper.common.validation import check_keyword_arguments, constructor_parameters
 
 SelfCheckedLoading = TypeVar("SelfCheckedLoading", bound="CheckedLoading")
 
@@ -94,17 +94,13 @@ def _public_name(algorithm: type[BaseAlgorithm]) -> str:
     return f"{algorithm.__module__.partition('.')[0]}.{algorithm.__name__}"
 
 
-def _constructor_parameters(algorithm: type) -> set[str]:
-    return set(inspect.signature(algorithm).parameters)
-
-
 def _other_librarys_file(cls: type[BaseAlgorithm], path: Any, fields: dict[str, Any]) -> ValueError | None:
     """The error for a file without ``saved_by`` that another library's algorithm saved, ``None`` for a file of
     sb3-dipper from before ``saved_by`` existed: that one holds settings of ``cls`` (``option_steps``, ...) that neither
     SB3's base classes nor the algorithms its policy class points to take."""
     savers, policy = saving_algorithms(fields)
     others: list[type] = [*savers, BaseAlgorithm, OffPolicyAlgorithm, OnPolicyAlgorithm]
-    own_settings = _constructor_parameters(cls) - set().union(*map(_constructor_parameters, others))
+    own_settings = set(constructor_parameters(cls)).difference(*map(constructor_parameters, others))
     if own_settings & fields.keys():
         return None
     if len(savers) == 1:
@@ -187,6 +183,16 @@ class CheckedLoading(BaseAlgorithm):
     saved_by: str
     # The episode length the model's buffers are sized for, also read from a saved file (None: sized by no episodes).
     max_episode_steps: int | None = None
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        """Refuse a misspelt keyword with a "did you mean" (:func:`~sb3_dipper.common.validation.check_keyword_arguments`).
+
+        Python raises its bare ``TypeError`` for an unknown keyword before ``__init__`` runs, so the check sits here,
+        the one place every construction passes (code, the zoo's YAML and ``-params``, Optuna), and each ``__init__``
+        keeps SB3's explicit signature.
+        """
+        check_keyword_arguments(cls, kwargs)
+        return super().__new__(cls)
 
     def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
         """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly.
