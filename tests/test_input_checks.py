@@ -3,6 +3,7 @@ observations are refused at construction (or where the observation enters), with
 
 import inspect
 import math
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -320,3 +321,16 @@ def test_a_misspelt_key_of_a_yaml_entry_names_the_file_for_sb3s_classes_too():
     ):
         make_model("sac", "PointMazeFourRooms-v0", seed=0, overrides={"gradient_step": 2})
 
+
+# ---------------------------------------------------------------------------------------------------- option length
+
+
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, RAPS])
+def test_options_longer_than_the_episode_are_warned_about(env, model_class):
+    # The maze's episodes have 20 steps.
+    with pytest.warns(UserWarning, match=r"option_steps=25 is longer than the episode \(max_episode_steps=20\)"):
+        any_tiny_model(model_class, env, option_steps=25)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        any_tiny_model(model_class, env, option_steps=20)
+    assert not [warning for warning in caught if "option_steps" in str(warning.message)]
