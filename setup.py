@@ -24,7 +24,8 @@ setup(
     ],
     python_requires=">=3.10",
     install_requires=[
-        # 2.13.0 is the CPU wheel these machines carry; the Makefile installs it first so this range adds nothing.
+        # The Makefile installs torch first (TORCH_SPEC: 2.13.0, the CPU build the development and CI machines hold in
+        # pip's local wheel folder), so there this range is already met and pulls no other build.
         "torch>=2.8,<3",
         "stable-baselines3>=2.9.2,<3",
         "sb3-contrib>=2.9.2,<3",

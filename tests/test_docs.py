@@ -20,6 +20,7 @@ from packaging.utils import canonicalize_name
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 import sb3_dipper
+from tests.conftest import ALL_ALGORITHMS, any_tiny_model
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 MODULE_DIRECTIVE = re.compile(r"^\.\. (?:py:)?(?:module|currentmodule|automodule):: +(\S+)\s*$")
@@ -195,3 +196,17 @@ def test_math_is_rendered_by_a_mathjax_copied_into_the_site(tmp_path):
     assert scripts, "the page loads no MathJax: its math would show as raw LaTeX"
     # Relative and inside the site: the page renders its math with no network (no CDN at build or view time).
     assert all("://" not in script and (tmp_path / "html" / script).is_file() for script in scripts), scripts
+
+
+# ---------------------------------------------------------------------------------------------------- algorithm pages
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS, ids=lambda model_class: model_class.__name__)
+def test_an_algorithm_page_says_whether_predict_carries_a_recurrent_state(model_class, maze_env):
+    page = (DOCS / "modules" / f"{model_class.__module__.split('.')[1]}.rst").read_text(encoding="utf-8")
+    model = any_tiny_model(model_class, maze_env)
+    _, state = model.predict(maze_env.reset())
+    # "Recurrent policies: no" beside "predict takes a recurrent state" read as a contradiction: the page names both.
+    assert "Recurrent policy networks (LSTM): ❌" in page or "Recurrent policies: ❌" in page
+    assert ("``predict``'s recurrent ``state``: ✔️" in page) == (state is not None)
+    assert "Recurrent policies: ❌ (" not in page
