@@ -8,6 +8,7 @@ list of an ``automodule``.
 
 import ast
 import importlib
+import importlib.util
 import re
 import runpy
 import sys
@@ -210,3 +211,28 @@ def test_an_algorithm_page_says_whether_predict_carries_a_recurrent_state(model_
     assert "Recurrent policy networks (LSTM): ❌" in page or "Recurrent policies: ❌" in page
     assert ("``predict``'s recurrent ``state``: ✔️" in page) == (state is not None)
     assert "Recurrent policies: ❌ (" not in page
+
+
+# ---------------------------------------------------------------------------------------------------- torch threads
+
+
+def zoo_train_num_threads_default() -> str:
+    """``--num-threads`` of ``sb3-dipper-zoo train``: a value our runner adds, else rl-zoo3's train default."""
+    from sb3_dipper.zoo import zoo_argv
+
+    argv = zoo_argv("train", ["--algo", "dipper", "--env", "PointMazeFourRooms-v0"])
+    if "--num-threads" in argv:
+        return argv[argv.index("--num-threads") + 1]
+    source = Path(importlib.util.find_spec("rl_zoo3.train").origin).read_text(encoding="utf-8")
+    match = re.search(r'"--num-threads".*?default=(-?\d+)', source)
+    assert match, "rl-zoo3's train has no --num-threads default to read"
+    return match.group(1)
+
+
+def test_the_readme_and_the_zoo_page_say_how_to_train_with_one_thread():
+    page = (DOCS / "guide" / "zoo.rst").read_text(encoding="utf-8")
+    assert f"``--num-threads`` defaults to ``{zoo_train_num_threads_default()}``" in page
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert f"its default, `{zoo_train_num_threads_default()}`," in readme
+    for text in (page, readme):
+        assert "--num-threads 1" in text and "torch.set_num_threads(1)" in text
