@@ -1,7 +1,9 @@
 # Two commands on a fresh machine: `make demo` and `make test`. Both create or update .venv first.
 PYTHON ?= python3
 VENV ?= .venv
-# The CPU wheel of torch 2.13.0 is on these machines; a bare `torch` would pull a multi-GB CUDA build.
+# The project's development and CI machines (CPU only, no GPU) hold torch 2.13.0's CPU build in pip's local wheel
+# folder (find-links); pinned, pip installs that build instead of PyPI's default multi-GB CUDA one. Elsewhere, install
+# the torch build that fits the machine into $(VENV) first (the CPU-only one without a GPU) and set TORCH_SPEC=torch.
 TORCH_SPEC ?= torch==2.13.0
 PY := $(VENV)/bin/python
 # Tests are single-threaded; one pytest worker per core.
@@ -10,7 +12,8 @@ TEST_WORKERS ?= 2
 # (pytest, ruff, mypy, ray, minari), so a demo machine never installs them.
 STAMP := $(VENV)/.sb3-dipper-installed
 TEST_STAMP := $(VENV)/.sb3-dipper-tests-installed
-# The documentation tools (sphinx, its theme, myst-parser for the Markdown changelog), for `make docs` only.
+# The documentation tools (sphinx, its theme, myst-parser for the Markdown changelog, a packaged MathJax) and flask
+# for the labelling page's API page, for `make docs` only.
 DOCS_STAMP := $(VENV)/.sb3-dipper-docs-installed
 export MUJOCO_GL ?= egl
 

@@ -24,7 +24,8 @@ setup(
     ],
     python_requires=">=3.10",
     install_requires=[
-        # 2.13.0 is the CPU wheel these machines carry; the Makefile installs it first so this range adds nothing.
+        # The Makefile installs torch first (TORCH_SPEC: 2.13.0, the CPU build the development and CI machines hold in
+        # pip's local wheel folder), so there this range is already met and pulls no other build.
         "torch>=2.8,<3",
         "stable-baselines3>=2.9.2,<3",
         "sb3-contrib>=2.9.2,<3",
@@ -46,8 +47,9 @@ setup(
         "cluster": ["ray>=2.9"],
         # sb3-dipper-label: the labelling page (Flask) and its pictures of pairs (matplotlib).
         "label": ["flask>=3", "matplotlib>=3.7"],
-        # `make docs`: the Sphinx site (the SB3 family's theme; myst-parser includes the Markdown changelog).
-        "docs": ["sphinx>=7,<10", "sphinx-rtd-theme>=2,<4", "myst-parser>=2,<6"],
+        # `make docs`: the Sphinx site (the SB3 family's theme; myst-parser includes the Markdown changelog; MathJax from
+        # a package, so that math renders without a network) and flask, which autodoc needs to import the labelling page.
+        "docs": ["sphinx>=7,<10", "sphinx-rtd-theme>=2,<4", "myst-parser>=2,<6", "sphinx-mathjax-offline>=0.0.2", "flask>=3"],
         "tests": [
             "pytest>=8",
             "pytest-timeout",
@@ -62,6 +64,9 @@ setup(
             # tests/test_labelling.py: the labelling page, driven in the system's headless Chromium.
             "flask>=3",
             "selenium>=4.20",
+            # tests/test_docs.py builds a page with the docs' math extensions.
+            "sphinx>=7,<10",
+            "sphinx-mathjax-offline>=0.0.2",
         ],
     },
     entry_points={

@@ -20,11 +20,13 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.doctest",
     "sphinx.ext.mathjax",
+    # MathJax 3 from its PyPI package, copied into the site (_static/mathjax): math renders with no network.
+    "sphinx-mathjax-offline",
     "sphinx.ext.viewcode",
     "myst_parser",
 ]
 
-# Nothing is fetched at build time: no intersphinx; MathJax is only referenced by the HTML pages.
+# Nothing is fetched, neither at build time (no intersphinx) nor when a page is viewed (MathJax is in the site).
 source_suffix = {".rst": "restructuredtext"}
 exclude_patterns = ["_build", "benchmarks", "tasks", "research", "**/_*.rst", "Thumbs.db", ".DS_Store"]
 master_doc = "index"

@@ -3,6 +3,7 @@ observations are refused at construction (or where the observation enters), with
 
 import inspect
 import math
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -16,6 +17,7 @@ from sb3_dipper.common.option_env import OptionVecEnv
 from sb3_dipper.common.preferences import TrajectoryPairs
 from sb3_dipper.envs import PointMazeReachController
 from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
+from zoo_scripts.configs import make_model
 
 NAN, INF = math.nan, math.inf
 POSITIVE = "must be a finite number > 0"
@@ -286,3 +288,49 @@ def test_hier_refuses_no_updates_for_the_lower_level(env):
     """The option loop has no "-1": a negative count would silently skip every lower update."""
     with pytest.raises(ValueError, match="gradient_steps must be at least 0, got -1"):
         any_tiny_model(HIER, env, gradient_steps=-1)
+
+
+# ---------------------------------------------------------------------------------------------------- misspelt keywords
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_a_misspelt_keyword_names_the_class_and_the_parameter_it_resembles(env, model_class):
+    with pytest.raises(
+        TypeError,
+        match=rf"^{model_class.__name__} got an unexpected keyword argument 'learning_start'; "
+        r"did you mean 'learning_starts'\?$",
+    ):
+        any_tiny_model(model_class, env, learning_start=40)
+    with pytest.raises(TypeError, match=rf"'colour'; see help\({model_class.__name__}\) for its parameters$"):
+        any_tiny_model(model_class, env, colour="blue")
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_the_constructor_keeps_its_explicit_signature(model_class):
+    # SB3's contract: the parameters are the constructor's own (help(), the docs, rl-zoo3 and Optuna read them).
+    parameters = inspect.signature(model_class).parameters
+    assert list(parameters) == list(constructor_parameters(model_class))[1:]
+    assert "learning_starts" in parameters and all(p.kind is not p.VAR_KEYWORD for p in parameters.values())
+
+
+def test_a_misspelt_key_of_a_yaml_entry_names_the_file_for_sb3s_classes_too():
+    with pytest.raises(
+        TypeError,
+        match=r"^SAC got an unexpected keyword argument 'gradient_step' \(from .*sac\.yml or "
+        r"the overrides\); did you mean 'gradient_steps'\?$",
+    ):
+        make_model("sac", "PointMazeFourRooms-v0", seed=0, overrides={"gradient_step": 2})
+
+
+# ---------------------------------------------------------------------------------------------------- option length
+
+
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, RAPS])
+def test_options_longer_than_the_episode_are_warned_about(env, model_class):
+    # The maze's episodes have 20 steps.
+    with pytest.warns(UserWarning, match=r"option_steps=25 is longer than the episode \(max_episode_steps=20\)"):
+        any_tiny_model(model_class, env, option_steps=25)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        any_tiny_model(model_class, env, option_steps=20)
+    assert not [warning for warning in caught if "option_steps" in str(warning.message)]

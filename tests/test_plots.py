@@ -6,6 +6,7 @@ Real zoo runs, written by ``benchmark.py learning``, are plotted in tests/test_b
 import json
 import sys
 
+import matplotlib
 import numpy as np
 import pytest
 
@@ -197,3 +198,28 @@ def test_training_success_reads_every_part_of_a_paused_run_in_step_order(tmp_pat
     np.testing.assert_array_equal(steps, [100, 200, 300, 350])
     np.testing.assert_allclose(success, [0.0, 0.5, 0.5, 0.5])
     assert plot.training_success_curve(tmp_path / "part_1" / "missing") is None
+
+
+def line_pixels(ax, line) -> int:
+    """How many pixels inside the panel have the line's colour (its band is lighter, alpha 0.2; the legend is below)."""
+    ax.figure.canvas.draw()
+    image = np.asarray(ax.figure.canvas.buffer_rgba())[..., :3].astype(int)
+    box = ax.get_window_extent()
+    panel = image[image.shape[0] - int(box.y1) : image.shape[0] - int(box.y0), int(box.x0) : int(box.x1)]
+    return int((np.abs(panel - np.array(matplotlib.colors.to_rgb(line.get_color())) * 255).max(axis=-1) < 8).sum())
+
+
+def test_a_series_of_one_point_is_drawn_with_a_marker():
+    one_evaluation = [(np.array([1000.0]), np.array([0.5])), (np.array([1000.0]), np.array([0.7]))]
+    fig = plot.draw_success({"MazeA-v0": {"dipper": one_evaluation, "sac": [(STEPS, STEPS / STEPS[-1])]}})
+    single, several = fig.axes[0].get_lines()
+    np.testing.assert_allclose(single.get_ydata(), [0.6])
+    assert single.get_marker() == "o" and several.get_marker() == "None"
+    assert line_pixels(fig.axes[0], single) > 20
+
+    def curves(env_id, algo, key):
+        return [(np.array([1000.0]), np.array([0.25]))]
+
+    fig = plot.draw_hierarchical_metrics(curves, ["dipper"], ["MazeA-v0"])
+    assert all(ax.get_lines()[0].get_marker() == "o" for ax in fig.axes)
+    assert all(line_pixels(ax, ax.get_lines()[0]) > 20 for ax in fig.axes)

@@ -2,11 +2,18 @@
 stopped training, the saved state a resumed run needs, time limits and classes of saved files, tensorboard, warnings,
 and running both levels of a hierarchy without the algorithm (``export_policy``)."""
 
+import base64
+import json
+import pickle
 import warnings
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch as th
+from sb3_contrib import TQC
+from stable_baselines3 import PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
@@ -14,6 +21,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_dipper import DAC, DIPPER, HIER
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.hierarchical_policy import HierarchicalPolicy
+from sb3_dipper.common.loading import _pickled_class_name
 from sb3_dipper.common.low_level import SubgoalVecEnv, low_level_observation_space
 from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 from tests.test_save_load import rollout_actions
@@ -142,6 +150,29 @@ def test_resuming_after_a_callback_stop_stores_the_true_observations_and_one_sub
         np.testing.assert_array_equal(subgoals[step], subgoals[start])
 
 
+# ---------------------------------------------------------------------------------------------------- updates
+
+
+# (n_envs, learning_starts, train_freq, gradient_steps, option_steps, total steps): the first training rounds after the
+# warm-up, with a learning_starts that is not a multiple of train_freq.
+WARM_UP_CASES = [(1, 29, 2, 3, 4, 36), (2, 30, 1, 2, 5, 40)]
+
+
+@pytest.mark.parametrize(("n_envs", "learning_starts", "train_freq", "gradient_steps", "option_steps", "steps"), WARM_UP_CASES)
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_the_lower_level_owes_no_updates_for_the_warm_up_as_sb3_sac(
+    model_class, n_envs, learning_starts, train_freq, gradient_steps, option_steps, steps
+):
+    settings = dict(learning_starts=learning_starts, train_freq=train_freq, gradient_steps=gradient_steps, batch_size=16)
+    sac = SAC("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=n_envs), policy_kwargs=dict(net_arch=[8]), seed=0, **settings)
+    sac.learn(steps)
+    model = tiny_model(model_class, short_maze(n_envs=n_envs), option_steps=option_steps, **settings)
+    model.learn(steps)
+    assert model.num_timesteps == sac.num_timesteps == steps
+    # Before, the first round also ran the warm-up's learning_starts x gradient_steps / train_freq updates at once.
+    assert model.lower._n_updates == sac._n_updates > 0
+
+
 # ---------------------------------------------------------------------------------------------------- saved state
 
 
@@ -187,6 +218,50 @@ def test_loading_another_algorithms_file_names_the_class_that_saved_it(model_cla
     name = model_class.__name__
     with pytest.raises(ValueError, match=rf"was saved by {name}; load it with {name}\.load, not {other_class.__name__}\.load"):
         other_class.load(tmp_path / "model")
+
+
+# Algorithms that share a policy class are all named (sb3-contrib's TRPO is imported with TQC).
+@pytest.mark.parametrize(
+    ("library_class", "saver"),
+    [
+        (SAC, r"stable_baselines3\.SAC"),
+        (TQC, r"sb3_contrib\.TQC"),
+        (PPO, r"sb3_contrib\.TRPO or stable_baselines3\.A2C or stable_baselines3\.PPO"),
+    ],
+)
+def test_loading_another_librarys_file_names_the_class_that_saved_it(library_class, saver, tmp_path, maze_env):
+    library_class("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(net_arch=[8]), seed=0).save(tmp_path / "model")
+    loader = rf"{saver}\.load" if " or " not in saver else "the one that saved it"
+    for model_class in ALL_ALGORITHMS:
+        message = rf"saved by {saver} \(its policy is .*\), not by an sb3-dipper algorithm: load it with {loader}, not "
+        # Without an env SB3 alone failed on the missing subgoal space, with one on the missing lower optimizer.
+        with pytest.raises(ValueError, match=message + rf"{model_class.__name__}\.load"):
+            model_class.load(tmp_path / "model.zip")
+        with pytest.raises(ValueError, match=message):
+            model_class.load(tmp_path / "model.zip", env=maze_env)
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_a_file_of_ours_without_the_saving_class_still_loads(model_class, tmp_path, maze_env):
+    # sb3-dipper 0.1.0 wrote no saved_by; its files hold the class's own settings (option_steps, ...).
+    any_tiny_model(model_class, maze_env).save(tmp_path / "model")
+    with zipfile.ZipFile(tmp_path / "model.zip") as saved, zipfile.ZipFile(tmp_path / "old.zip", "w") as old:
+        for item in saved.namelist():
+            content = saved.read(item)
+            if item == "data":
+                data = json.loads(content)
+                del data["saved_by"]
+                content = json.dumps(data).encode()
+            old.writestr(item, content)
+    loaded = model_class.load(tmp_path / "old.zip", env=maze_env)
+    assert loaded.num_timesteps == 0 and not hasattr(loaded, "saved_by")
+
+
+def test_a_policy_class_saved_by_value_is_not_guessed():
+    serialized = base64.b64encode(pickle.dumps(Path)).decode()  # "pathlib.Path", but the data says another module
+    assert _pickled_class_name({":serialized:": serialized, "__module__": "pathlib"}) == "pathlib.Path"
+    assert _pickled_class_name({":serialized:": serialized, "__module__": "__main__"}) is None
+    assert _pickled_class_name({":serialized:": "not base64!", "__module__": "pathlib"}) is None
 
 
 # ---------------------------------------------------------------------------------------------------- logging, warnings

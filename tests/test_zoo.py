@@ -214,7 +214,7 @@ def test_train_then_enjoy_in_subprocesses(algo, tmp_path):
 def test_a_hyperparameter_typo_names_the_keyword(tmp_path):
     result = zoo("train", "--algo", "dipper", "--env", ENV_ID, "-n", "10", "-f", "logs", "-params", "betta:0.1", cwd=tmp_path)
     assert result.returncode != 0
-    assert "betta" in result.stderr
+    assert "DIPPER got an unexpected keyword argument 'betta'; did you mean 'beta'?" in result.stderr
 
 
 def test_an_unknown_algorithm_is_refused(tmp_path):

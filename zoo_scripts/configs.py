@@ -27,6 +27,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.files import write_bytes_atomically
+from sb3_dipper.common.validation import check_keyword_arguments
 from sb3_dipper.zoo import ZOO_ALGORITHMS
 
 HYPERPARAMS_DIR = Path(__file__).resolve().parent.parent / "hyperparams"
@@ -79,6 +80,8 @@ def make_model(
     env = make_env(env_id, entry, seed)
     n_timesteps = int(entry["n_timesteps"])
     kwargs = {key: value for key, value in entry.items() if key not in ZOO_KEYS}
+    # Our algorithms check their keywords themselves; SB3's SAC and TQC would raise a bare TypeError for a misspelt key.
+    check_keyword_arguments(ALGORITHMS[algo], {**kwargs, **model_kwargs}, f"{hyperparams / f'{algo}.yml'} or the overrides")
     model = ALGORITHMS[algo](env=env, seed=seed, **kwargs, **model_kwargs)
     return model, env, n_timesteps
 

@@ -29,6 +29,7 @@ import re
 from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 import numpy as np
@@ -195,6 +196,11 @@ def _colors(names: list[str]) -> dict[str, tuple[float, ...]]:
     return {name: colormap((2 * index) % 20 + (2 * index) // 20) for index, name in enumerate(names)}
 
 
+def _plot_series(ax: plt.Axes, steps: np.ndarray, values: np.ndarray, **kwargs: Any) -> None:
+    """``ax.plot``, with a marker for a series of one point (a single evaluation), which a line alone leaves invisible."""
+    ax.plot(steps, values, marker="o" if len(steps) == 1 else None, **kwargs)
+
+
 def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
     """One legend below the panels (as in the paper's figures), with every algorithm that appears in any panel."""
     entries: dict[str, Artist] = {}
@@ -226,12 +232,13 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]], labels: Callable[[st
     for ax, (env_id, lines) in zip(axes.flat, panels.items(), strict=False):
         for name, curves in lines.items():
             steps, mean, std = aggregate(curves)
-            ax.plot(steps, mean, color=colors[name], label=labels(name))
+            _plot_series(ax, steps, mean, color=colors[name], label=labels(name))
             ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[name], alpha=0.2)
             for seed_steps, seed_success in curves:
                 if seed_steps[-1] > steps[-1]:
                     further = seed_steps >= steps[-1]
-                    ax.plot(seed_steps[further], seed_success[further], color=colors[name], linewidth=0.8, linestyle=":")
+                    further_success = seed_success[further]
+                    _plot_series(ax, seed_steps[further], further_success, color=colors[name], linewidth=0.8, linestyle=":")
         ax.set(title=env_id, ylim=(-0.02, 1.02))
         _steps_axis(ax)
         ax.grid(alpha=0.3)
@@ -323,7 +330,7 @@ def draw_hierarchical_metrics(
                     continue
                 steps, mean, std = aggregate(seeds)
                 ax = axes[row, col]
-                ax.plot(steps, mean, color=colors[algo], label=label(algo))
+                _plot_series(ax, steps, mean, color=colors[algo], label=label(algo))
                 ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2)
                 plotted = True
         for row, name in enumerate(HIERARCHICAL_METRICS.values()):

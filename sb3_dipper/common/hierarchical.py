@@ -16,6 +16,7 @@ import copy
 import math
 import sys
 import time
+import warnings
 from abc import abstractmethod
 from collections import deque
 from collections.abc import Callable
@@ -249,6 +250,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         if self.env is not None:
             self.subgoal_space = resolve_subgoal_space(self.env, self.subgoal_space)
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
+            self._warn_if_options_outlast_episodes()
         assert self.subgoal_space is not None, "a saved model always carries its subgoal space"
         demonstrations = self._load_demonstrations() if self.demo_path is not None and self.env is not None else None
         if demonstrations is not None and self.normalize_from_demos:
@@ -264,6 +266,16 @@ class HierarchicalAlgorithm(CheckedLoading):
         if self.env is not None:
             self.option_env = OptionVecEnv(
                 self.env, self.subgoal_space, self.option_steps, self.low_level, sink=self._on_primitive_step
+            )
+
+    def _warn_if_options_outlast_episodes(self) -> None:
+        """Allowed but rarely meant: every option is cut short by the episode's end, so the higher level acts once per
+        episode and the hierarchy never chains options."""
+        if self.max_episode_steps is not None and self.option_steps > self.max_episode_steps:
+            warnings.warn(
+                f"option_steps={self.option_steps} is longer than the episode (max_episode_steps={self.max_episode_steps}):"
+                f" every option ends with the episode, so {type(self).__name__}'s higher level acts once per episode. "
+                f"Use option_steps < {self.max_episode_steps} for several options per episode."
             )
 
     @staticmethod
@@ -557,6 +569,10 @@ class HierarchicalAlgorithm(CheckedLoading):
         """The option layer's sink: count the step, run callbacks, fill the lower buffer, log episodes."""
         self.num_timesteps += self.n_envs
         self._low_steps_since_train += 1
+        if self.num_timesteps <= self.learning_starts:
+            # As in SB3's SAC, the warm-up owes no lower updates: only windows of train_freq steps (counted from the
+            # start, as SB3's rollouts) that end after learning_starts do, so the first round does not catch up on them.
+            self._low_steps_since_train %= self.train_freq
         dones, infos = transition.base_dones, transition.infos
         self._callback.update_locals(locals())
         if not self._callback.on_step():

@@ -4,6 +4,9 @@
 
 * records the saving class's name in the zip's data (``saved_by``), and ``load`` refuses a file that another class
   saved with a ``ValueError`` naming that class (SB3 alone fails later, with a ``KeyError`` or a parameter mismatch);
+  a file without ``saved_by`` (SB3's ``SAC``, sb3-contrib's ``TQC``, another library's class) is refused too, naming
+  the algorithm whose policy it holds (:func:`saving_algorithms`), unless it holds the loading class's own settings
+  (a file of sb3-dipper 0.1.0, which wrote no ``saved_by``);
 * refuses an env whose time limit differs from the episode length the model's buffers were sized for
   (``max_episode_steps``), at ``load`` and at ``set_env``: trajectories would be cut into pieces without a word.
   ``load(path, env=env, max_episode_steps=N)`` rebuilds the model for the env's N-step episodes;
@@ -14,19 +17,24 @@
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import pathlib
+import pickletools
 import zipfile
 from typing import Any, TypeVar
 
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.save_util import open_path, recursive_getattr, recursive_setattr
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.files import save_model_atomically
+from sb3_dipper.common.validation import check_keyword_arguments, constructor_parameters
 
 SelfCheckedLoading = TypeVar("SelfCheckedLoading", bound="CheckedLoading")
 
@@ -55,6 +63,91 @@ def _read_data_fields(file: io.BufferedIOBase) -> dict[str, Any]:
     except (zipfile.BadZipFile, json.JSONDecodeError):
         return {}
     return fields if isinstance(fields, dict) else {}
+
+
+def saving_algorithms(fields: dict[str, Any]) -> tuple[list[type[BaseAlgorithm]], str | None]:
+    """Which algorithms may have saved a model whose data has no ``saved_by``, read from its policy class without
+    unpickling anything.
+
+    :param fields: the saved data (:func:`saved_data_fields`)
+    :return: the algorithms imported in this process that declare the saved policy class among their own
+        ``policy_aliases`` (SB3's ``SAC`` for an SB3 ``SAC`` zip; ``A2C``, ``PPO`` and sb3-contrib's ``TRPO`` share one),
+        and the policy class as ``module.Name`` (``None`` where the data does not name it)
+    """
+    policy_class = fields.get("policy_class")
+    name = _pickled_class_name(policy_class) if isinstance(policy_class, dict) else None
+    if name is None:
+        return [], None
+    algorithms = [
+        algorithm
+        for algorithm in _algorithm_classes()
+        # Only the class that declares the aliases: subclasses of SAC (ours among them) inherit SAC's.
+        if "policy_aliases" in vars(algorithm)
+        and not issubclass(algorithm, CheckedLoading)
+        and any(f"{policy.__module__}.{policy.__qualname__}" == name for policy in algorithm.policy_aliases.values())
+    ]
+    return sorted(algorithms, key=_public_name), name
+
+
+def _public_name(algorithm: type[BaseAlgorithm]) -> str:
+    """``stable_baselines3.SAC``, ``sb3_contrib.TQC``: where a user imports the algorithm from."""
+    return f"{algorithm.__module__.partition('.')[0]}.{algorithm.__name__}"
+
+
+def _other_librarys_file(cls: type[BaseAlgorithm], path: Any, fields: dict[str, Any]) -> ValueError | None:
+    """The error for a file without ``saved_by`` that another library's algorithm saved, ``None`` for a file of
+    sb3-dipper from before ``saved_by`` existed: that one holds settings of ``cls`` (``option_steps``, ...) that neither
+    SB3's base classes nor the algorithms its policy class points to take."""
+    savers, policy = saving_algorithms(fields)
+    others: list[type] = [*savers, BaseAlgorithm, OffPolicyAlgorithm, OnPolicyAlgorithm]
+    own_settings = set(constructor_parameters(cls)).difference(*map(constructor_parameters, others))
+    if own_settings & fields.keys():
+        return None
+    if len(savers) == 1:
+        saver, loader = _public_name(savers[0]), f"{_public_name(savers[0])}.load"
+    elif savers:
+        saver, loader = " or ".join(map(_public_name, savers)), "the one that saved it"
+    else:
+        saver, loader = "another library's algorithm", "the class that saved it"
+    return ValueError(
+        f"{path} was saved by {saver} (its policy is {policy or 'not named in the file'}), not by an sb3-dipper "
+        f"algorithm: load it with {loader}, not {cls.__name__}.load ({cls.__name__}.load reads the files "
+        f"{cls.__name__}.save writes)"
+    )
+
+
+def _algorithm_classes() -> list[type[BaseAlgorithm]]:
+    """Every subclass of SB3's ``BaseAlgorithm`` imported so far."""
+    found: list[type[BaseAlgorithm]] = []
+    pending = list(BaseAlgorithm.__subclasses__())
+    while pending:
+        algorithm = pending.pop()
+        if algorithm not in found:
+            found.append(algorithm)
+            pending.extend(algorithm.__subclasses__())
+    return found
+
+
+def _pickled_class_name(serialized: dict[str, Any]) -> str | None:
+    """``module.Name`` of a class SB3 saved by reference (a cloudpickle global), read from the pickle's opcodes, which
+    are listed, not run; ``None`` for anything else (a class saved by value, a broken field)."""
+    strings: list[str] = []
+    try:
+        for opcode, argument, _ in pickletools.genops(base64.b64decode(serialized.get(":serialized:", ""))):
+            if opcode.name == "STACK_GLOBAL" and len(strings) >= 2:
+                module, name = strings[-2], strings[-1]
+                break
+            if opcode.name == "GLOBAL":
+                module, _, name = str(argument).partition(" ")
+                break
+            if isinstance(argument, str):
+                strings.append(argument)
+        else:
+            return None
+    except ValueError:  # not base64, or not a pickle
+        return None
+    # A class saved by value starts with cloudpickle's own globals; its module is then not the class's.
+    return f"{module}.{name}" if module == serialized.get("__module__") else None
 
 
 def env_time_limit(env: VecEnv) -> int | None:
@@ -91,6 +184,16 @@ class CheckedLoading(BaseAlgorithm):
     # The episode length the model's buffers are sized for, also read from a saved file (None: sized by no episodes).
     max_episode_steps: int | None = None
 
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        """Refuse a misspelt keyword with a "did you mean" (:func:`~sb3_dipper.common.validation.check_keyword_arguments`).
+
+        Python raises its bare ``TypeError`` for an unknown keyword before ``__init__`` runs, so the check sits here,
+        the one place every construction passes (code, the zoo's YAML and ``-params``, Optuna), and each ``__init__``
+        keeps SB3's explicit signature.
+        """
+        check_keyword_arguments(cls, kwargs)
+        return super().__new__(cls)
+
     def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
         """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly.
 
@@ -118,6 +221,10 @@ class CheckedLoading(BaseAlgorithm):
         saved_by = fields.get("saved_by")
         if saved_by is not None and saved_by != cls.__name__:
             raise ValueError(f"{path} was saved by {saved_by}; load it with {saved_by}.load, not {cls.__name__}.load")
+        # A file without saved_by from another library: SB3 alone would fail on its first missing attribute or
+        # parameter, with an AssertionError or a KeyError.
+        if saved_by is None and fields and (error := _other_librarys_file(cls, path, fields)) is not None:
+            raise error
         if env is not None:
             env = cls._wrap_env(env, int(fields.get("verbose", 0)))
             check_time_limit(

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import difflib
+import inspect
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -38,6 +40,35 @@ def check_goal_observation_space(observation_space: spaces.Space, algorithm: str
             f"and desired_goal is {desired_shape}. Make both the same quantity (for example the object position), "
             "so that an achieved goal can stand in for a desired one."
         )
+
+
+def constructor_parameters(algorithm: type) -> dict[str, inspect.Parameter]:
+    """The parameters of ``algorithm(...)``: those of its ``__init__`` after ``self``."""
+    parameters = list(inspect.signature(algorithm.__init__).parameters.values())  # type: ignore[misc]
+    return {parameter.name: parameter for parameter in parameters[1:]}
+
+
+def check_keyword_arguments(algorithm: type, kwargs: Mapping[str, Any], source: str = "") -> None:
+    """Refuse a keyword argument that ``algorithm``'s constructor does not take, suggesting the closest parameter.
+
+    Hyperparameters reach the constructors as keywords from code, the zoo's YAML files and ``-params``, and Optuna; a
+    misspelt one (``option_step``) would be Python's bare ``TypeError``. This is the same ``TypeError``, naming the
+    class and the parameter it was most likely meant to be (``difflib``).
+
+    :param algorithm: the class about to be built
+    :param kwargs: its keyword arguments
+    :param source: where the keywords came from, for the message (for example a YAML file)
+    """
+    parameters = constructor_parameters(algorithm)
+    if any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters.values()):
+        return
+    keywords = [name for name, parameter in parameters.items() if parameter.kind is not inspect.Parameter.POSITIONAL_ONLY]
+    for name in kwargs:
+        if name not in keywords:
+            close = difflib.get_close_matches(name, keywords, n=1)
+            hint = f"did you mean {close[0]!r}?" if close else f"see help({algorithm.__name__}) for its parameters"
+            origin = f" (from {source})" if source else ""
+            raise TypeError(f"{algorithm.__name__} got an unexpected keyword argument {name!r}{origin}; {hint}")
 
 
 def sparse_goal_reached_fn(venv: VecEnv) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
