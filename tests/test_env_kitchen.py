@@ -256,7 +256,11 @@ def run_expert(env: gym.Env, seeds: range) -> list[dict]:
 def test_scripted_expert_opens_the_microwave_then_turns_on_the_burner(env):
     assert EXPERTS[ENV_ID] is FrankaKitchenMicrowaveBurnerExpert
     for info in run_expert(env, range(5)):
-        assert info == {"is_success": 1.0, "episode_task_completions": ["microwave", "bottom burner"]}
+        # Only the task's keys: the module's shared env may carry keys other tests' wrappers wrote into its info dict.
+        assert {key: info[key] for key in ("is_success", "episode_task_completions")} == {
+            "is_success": 1.0,
+            "episode_task_completions": ["microwave", "bottom burner"],
+        }
 
 
 @pytest.mark.slow

@@ -278,13 +278,18 @@ def test_algorithms_train_on_labels_that_arrive_late(tmp_path, model_class):
     env.close()
 
 
-@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
-def test_a_restored_model_gets_only_the_labels_given_since_its_save(tmp_path, model_class):
-    """A checkpoint's dataset holds the pairs handed before it was saved: resuming hands only the labels given since."""
+def model_with_waiting_pairs(tmp_path, model_class):
+    """A tiny model whose people's label queue holds four waiting pairs, none labelled yet."""
     env = short_maze()
     model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
     model.learn(120)
-    queue = LabelQueue(tmp_path / "labels")
+    return env, model, LabelQueue(tmp_path / "labels")
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
+def test_a_restored_model_gets_only_the_labels_given_since_its_save(tmp_path, model_class):
+    """A checkpoint's dataset holds the pairs handed before it was saved: resuming hands only the labels given since."""
+    env, model, queue = model_with_waiting_pairs(tmp_path, model_class)
     first, second, third, _ = queue.waiting_ids()
     queue.record_answer(first, 1.0)
     queue.record_answer(second, 0.0)
@@ -309,10 +314,7 @@ def test_a_restored_model_gets_only_the_labels_given_since_its_save(tmp_path, mo
 @pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
 def test_labels_handed_over_after_a_checkpoint_come_back_when_it_is_resumed(tmp_path, model_class):
     """Training took a label after its last save, then was killed: the checkpoint's dataset lacks it, so it comes back."""
-    env = short_maze()
-    model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
-    model.learn(120)
-    queue = LabelQueue(tmp_path / "labels")
+    env, model, queue = model_with_waiting_pairs(tmp_path, model_class)
     first, second, third, _ = queue.waiting_ids()
     queue.record_answer(first, 1.0)
     model.learn(60, reset_num_timesteps=False)
