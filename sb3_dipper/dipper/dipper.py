@@ -382,9 +382,9 @@ class DIPPER(HierarchicalAlgorithm):
         rows are the observation's own."""
         assert self.subgoal_space is not None
         space, normalizer, rows = self.subgoal_space, self.low_normalizer, plan.planned
-        goals = np.array(observation["desired_goal"], copy=True)
         if not rows.any():
             return observation
+        goals = np.array(observation["desired_goal"], copy=True)
         planned = goals[rows] if normalizer is None else normalizer.unnormalize_goal(goals[rows], "desired_goal")
         planned[..., list(space.indices) if space.indices is not None else slice(None)] = plan.waypoints[rows]
         goals[rows] = planned if normalizer is None else normalizer.normalize_goal(planned, "desired_goal")
