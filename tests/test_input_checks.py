@@ -55,6 +55,8 @@ BAD_SETTINGS = [
     ("buffer_size", 0, "must be at least 1", None),
     ("high_buffer_size", 0, "must be at least 1", None),
     ("nll_coef", -1.0, NON_NEGATIVE, None),
+    ("label_smoothing", 0.5, r"must be a finite number in \[0, 0.5\)", None),
+    ("label_smoothing", -0.1, r"must be a finite number in \[0, 0.5\)", None),
     ("planning_lookahead", 0, "must be at least 1", None),
     ("planning_resolution", 0.0, POSITIVE, None),
     ("planning_value_threshold", NAN, "must be a finite number", None),

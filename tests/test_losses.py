@@ -115,6 +115,31 @@ def test_preference_loss_is_binary_cross_entropy_with_soft_labels():
     assert preference_loss(logits, labels).item() == pytest.approx(expected)
 
 
+def test_label_smoothing_takes_each_strict_label_as_flipped_with_probability_epsilon():
+    logits, labels = th.tensor([2.0, -1.0]), th.tensor([1.0, 0.5])
+    # Label 1 becomes 0.9; the tie stays 0.5.
+    expected = (-(0.9 * log_sigmoid(2.0) + 0.1 * log_sigmoid(-2.0)) - 0.5 * log_sigmoid(-1.0) - 0.5 * log_sigmoid(1.0)) / 2
+    assert preference_loss(logits, labels, label_smoothing=0.1).item() == pytest.approx(expected)
+
+
+def test_label_smoothing_bounds_the_margin_on_deterministic_labels():
+    # -[0.9 log sigma(z) + 0.1 log sigma(-z)] is smallest at z = log 9; without smoothing it falls for ever.
+    label = th.tensor([1.0])
+    smoothed = {z: preference_loss(th.tensor([z]), label, 0.1).item() for z in (math.log(9) - 0.5, math.log(9), 8.0)}
+    assert smoothed[math.log(9)] < smoothed[math.log(9) - 0.5] and smoothed[math.log(9)] < smoothed[8.0]
+    assert preference_loss(th.tensor([8.0]), label).item() < preference_loss(th.tensor([math.log(9)]), label).item()
+
+
+def test_a_reference_network_enters_per_step_and_carries_no_gradient():
+    log_probs = LOG_PROBS.clone().requires_grad_(True)
+    reference = th.tensor([[[-1.0, 0.0]], [[-2.0, -1.0]]], requires_grad=True)
+    # z = 0.5 * [(-1 + 1) + (-2 - 0)] - 0.5 * [(-3 + 2) + (-1 + 1)] = -1 + 0.5 = -0.5.
+    logits = dipper_logits(log_probs, FULL_MASK, 0.5, reference)
+    assert logits.item() == pytest.approx(-0.5)
+    logits.sum().backward()
+    assert reference.grad is None and log_probs.grad is not None
+
+
 def test_preference_accuracy_counts_strict_pairs_only():
     logits, labels = th.tensor([1.0, -2.0, 3.0, 0.5]), th.tensor([1.0, 1.0, 0.5, 0.0])
     # Strict pairs 0, 1, 3: logit 1 prefers tau^1 (right), -2 prefers tau^2 (wrong), 0.5 prefers tau^1 (wrong).

@@ -2,6 +2,7 @@
 DIPPER's subgoals with ``planning="subgoal"`` (the planner's share, zoo_scripts/planner_share.py)."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -445,3 +446,28 @@ def test_dipper_logs_what_its_new_labels_carry(tmp_path):
     assert ties["primitive"] > 0.2 and ties["progress"] < ties["primitive"] / 2
     agreement = {source: log["train/high_label_progress_agreement"].mean() for source, log in logs.items()}
     assert agreement["progress"] > agreement["primitive"]
+
+
+def test_an_averaged_reference_starts_every_pair_at_a_tie():
+    # Where the averaged actor equals the trained one every logit is 0 (lambda = 0), so the DPO loss is ln 2 whatever
+    # the labels; with the uniform reference it is not.
+    losses = {}
+    for reference in ("uniform", "averaged"):
+        model = tiny_model(
+            DIPPER,
+            short_maze(),
+            reference=reference,
+            high_gradient_steps=1,
+            value_reg_coef=0.0,
+            policy_kwargs=dict(net_arch=[16], acting_tau=0.05),
+        )
+        model.learn(300)
+        assert len(model.preferences) > 0
+        if model.policy.averaged_actor is not None:
+            model.policy.averaged_actor.load_state_dict(model.policy.actor.state_dict())
+        model._train_high_level()
+        losses[reference] = model.logger.name_to_value["train/high_dpo_loss"]
+    assert losses["averaged"] == pytest.approx(math.log(2), abs=1e-5)
+    assert losses["uniform"] != pytest.approx(math.log(2), abs=1e-3)
+    with pytest.raises(ValueError, match="acting_tau below 1"):
+        tiny_model(DIPPER, short_maze(), reference="averaged")

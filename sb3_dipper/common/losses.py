@@ -39,7 +39,7 @@ def dipper_logits(
     log_probs: th.Tensor,
     mask: th.Tensor,
     beta: float,
-    reference_log_prob: float = 0.0,
+    reference_log_prob: float | th.Tensor = 0.0,
     value_gaps: th.Tensor | None = None,
     value_reg_coef: float = 0.0,
 ) -> th.Tensor:
@@ -53,11 +53,14 @@ def dipper_logits(
     :param log_probs: ``(2, B, T)`` per-step log-probabilities of both trajectories
     :param mask: ``(2, B, T)`` real steps
     :param beta: the entropy (KL) weight beta
-    :param reference_log_prob: per-step log-density of the reference policy
+    :param reference_log_prob: per-step log-density of the reference policy: a constant (the uniform reference) or
+        ``(2, B, T)`` (a reference network's, no gradient)
     :param value_gaps: ``(2, B, T)`` per-step ``V^L - V^L_m`` (no gradient), or ``None``
     :param value_reg_coef: lambda
     """
     mask = mask.to(log_probs.dtype)
+    if isinstance(reference_log_prob, th.Tensor):
+        reference_log_prob = reference_log_prob.detach()
     implicit_rewards = (beta * (log_probs - reference_log_prob) * mask).sum(dim=-1)
     if value_gaps is not None and value_reg_coef != 0.0:
         implicit_rewards = implicit_rewards - value_reg_coef * (value_gaps.detach() * mask).sum(dim=-1)
@@ -79,9 +82,17 @@ def at_real_steps(values: th.Tensor, mask: th.Tensor) -> th.Tensor:
     return values.new_zeros(mask.shape).masked_scatter(mask, values)
 
 
-def preference_loss(logits: th.Tensor, labels: th.Tensor) -> th.Tensor:
-    """``-[y log sigma(z) + (1 - y) log sigma(-z)]``, averaged over pairs (Bradley-Terry with soft labels)."""
-    return F.binary_cross_entropy_with_logits(logits, labels.to(logits.dtype))
+def preference_loss(logits: th.Tensor, labels: th.Tensor, label_smoothing: float = 0.0) -> th.Tensor:
+    """``-[y log sigma(z) + (1 - y) log sigma(-z)]``, averaged over pairs (Bradley-Terry with soft labels).
+
+    :param label_smoothing: epsilon of conservative DPO: each strict label is taken as flipped with probability
+        epsilon, ``y <- (1 - epsilon) y + epsilon (1 - y)`` (ties stay 0.5), so the loss is minimised at a finite
+        margin ``z = log((1 - epsilon) / epsilon)`` instead of growing it without bound on deterministic labels
+    """
+    targets = labels.to(logits.dtype)
+    if label_smoothing != 0.0:
+        targets = (1.0 - label_smoothing) * targets + label_smoothing * (1.0 - targets)
+    return F.binary_cross_entropy_with_logits(logits, targets)
 
 
 def preference_accuracy(logits: th.Tensor, labels: th.Tensor) -> float | None:
@@ -103,13 +114,14 @@ def dipper_loss(
     mask: th.Tensor,
     labels: th.Tensor,
     beta: float,
-    reference_log_prob: float = 0.0,
+    reference_log_prob: float | th.Tensor = 0.0,
     value_gaps: th.Tensor | None = None,
     value_reg_coef: float = 0.0,
+    label_smoothing: float = 0.0,
 ) -> tuple[th.Tensor, th.Tensor]:
     """The DIPPER loss (Eq. 9) and its logits. ``value_reg_coef = 0`` is plain token-level DPO with a uniform reference."""
     logits = dipper_logits(log_probs, mask, beta, reference_log_prob, value_gaps, value_reg_coef)
-    return preference_loss(logits, labels), logits
+    return preference_loss(logits, labels, label_smoothing), logits
 
 
 def preferred_nll(log_probs: th.Tensor, mask: th.Tensor, labels: th.Tensor) -> th.Tensor:

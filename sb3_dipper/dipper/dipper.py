@@ -53,6 +53,7 @@ SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
 PLANNING_MODES = ("off", "subgoal", "waypoint")
+REFERENCE_POLICIES = ("uniform", "averaged")
 # Rebuild the planning graph after this many new trajectories (a rebuild takes milliseconds).
 GRAPH_REBUILD_TRAJECTORIES = 4
 
@@ -88,6 +89,11 @@ class DIPPER(HierarchicalAlgorithm):
     :param random_subgoal_prob: probability of a uniformly random subgoal during training (exploration)
     :param high_gradient_steps: higher-level gradient steps per option
     :param nll_coef: weight of the preferred trajectory's negative log-likelihood added to the loss (RPO-style; 0: off)
+    :param label_smoothing: epsilon of conservative DPO (beyond the paper): each strict label counts as flipped with
+        probability epsilon, which bounds the DPO margin on deterministic labels (0: the paper)
+    :param reference: the reference policy of the DPO logit: ``"uniform"`` (the paper: no reference policy) or
+        ``"averaged"`` (beyond the paper: the Polyak average of the trained actor, a slowly moving previous policy that
+        keeps each update near the last; needs ``policy_kwargs`` ``acting_tau`` below 1)
     :param hindsight_actions: train on the subgoal each option actually reached instead of the one proposed
     :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
     :param planning: planning over achieved states (:class:`~sb3_dipper.common.planning.SubgoalGraph`): ``"off"`` (the
@@ -168,6 +174,8 @@ class DIPPER(HierarchicalAlgorithm):
         random_subgoal_prob: float = 0.2,
         high_gradient_steps: int = 1,
         nll_coef: float = 0.0,
+        label_smoothing: float = 0.0,
+        reference: str = "uniform",
         hindsight_actions: bool = False,
         truncate_at_goal: bool = False,
         planning: str = "off",
@@ -253,6 +261,11 @@ class DIPPER(HierarchicalAlgorithm):
         pairs_per_batch = as_int("pairs_per_batch", pairs_per_batch, 1)
         high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
         nll_coef = as_float("nll_coef", nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
+        label_smoothing = as_float(
+            "label_smoothing", label_smoothing, 0.0, 0.5, high_open=True, reason="0.5 makes every label a tie"
+        )
+        if reference not in REFERENCE_POLICIES:
+            raise ValueError(f"Unknown reference {reference!r}: choose one of {REFERENCE_POLICIES}")
         planning_lookahead = as_int("planning_lookahead", planning_lookahead, 1)
         planning_resolution = as_optional_float("planning_resolution", planning_resolution, 0.0, low_open=True)
         planning_value_threshold = as_optional_float("planning_value_threshold", planning_value_threshold)
@@ -269,6 +282,8 @@ class DIPPER(HierarchicalAlgorithm):
         self.hindsight_goal_prob = hindsight_goal_prob
         self.high_gradient_steps = high_gradient_steps
         self.nll_coef = nll_coef
+        self.label_smoothing = label_smoothing
+        self.reference = reference
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
         if planning not in PLANNING_MODES:
@@ -307,6 +322,8 @@ class DIPPER(HierarchicalAlgorithm):
             self.subgoal_graph = SubgoalGraph(self.subgoal_space, self.planning_resolution or self.subgoal_space.threshold)
         self._trajectories_since_graph = 0
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
+        if self.reference == "averaged" and self.policy.averaged_actor is None:
+            raise ValueError("reference='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 (e.g. 0.05)")
         # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
         self._labeler: PreferenceSource | None = None
@@ -447,7 +464,10 @@ class DIPPER(HierarchicalAlgorithm):
             # masked, so the networks see only the real steps (on pick-and-place about a fifth of the padded (2, B, T) batch).
             log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
             gaps = self._value_gaps(pairs, mask) if self.value_reg == "paper" and self.value_reg_coef != 0.0 else None
-            dpo, logits = dipper_loss(log_probs, mask, labels, self.beta, self._reference_log_prob, gaps, self.value_reg_coef)
+            reference = self._reference_log_probs(observations, actions, mask)
+            dpo, logits = dipper_loss(
+                log_probs, mask, labels, self.beta, reference, gaps, self.value_reg_coef, self.label_smoothing
+            )
             loss = dpo
 
             # Optional: the preferred side's likelihood (RPO-style), against likelihood displacement.
@@ -516,12 +536,22 @@ class DIPPER(HierarchicalAlgorithm):
         with th.no_grad():
             observations, actions, mask, labels = self._pair_tensors(labelled)
             log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
-            _, logits = dipper_loss(log_probs, mask, labels, self.beta, self._reference_log_prob)
+            reference = self._reference_log_probs(observations, actions, mask)
+            _, logits = dipper_loss(log_probs, mask, labels, self.beta, reference)
             accuracy = preference_accuracy(logits, labels)
             if accuracy is not None:
                 self.logger.record_mean("train/high_new_pair_accuracy", accuracy)
                 self.logger.record_mean("train/high_new_logp_preferred", -preferred_nll(log_probs, mask, labels).item())
                 self.logger.record_mean("train/high_new_logp_rejected", -preferred_nll(log_probs, mask, 1 - labels).item())
+
+    def _reference_log_probs(
+        self, observations: dict[str, th.Tensor], actions: th.Tensor, mask: th.Tensor
+    ) -> float | th.Tensor:
+        """The reference policy's per-step log-density: the uniform constant, or the averaged actor's ``(2, B, T)``."""
+        if self.reference == "uniform":
+            return self._reference_log_prob
+        with th.no_grad():
+            return at_real_steps(self.policy.averaged_log_prob(observations, actions), mask)
 
     def _pair_actions(self, pairs: TrajectoryPairs) -> np.ndarray:
         return pairs.reached_actions if self.hindsight_actions else pairs.actions

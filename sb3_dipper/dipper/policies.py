@@ -124,6 +124,13 @@ class DIPPERPolicy(BasePolicy):
         mean_actions, log_std, _ = self.actor.get_action_dist_params(observation)
         return squashed_gaussian_log_prob(mean_actions, log_std, actions)
 
+    def averaged_log_prob(self, observation: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """Log-probability of stored higher-level actions under the Polyak-averaged actor (needs ``acting_tau < 1``)."""
+        if self.averaged_actor is None:
+            raise ValueError("the policy keeps no averaged actor: set policy_kwargs acting_tau below 1")
+        mean_actions, log_std, _ = self.averaged_actor.get_action_dist_params(observation)
+        return squashed_gaussian_log_prob(mean_actions, log_std, actions)
+
     def sample_with_log_prob(self, observation: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
         """Reparameterised actions of the trained actor and their log-probabilities."""
         return self.actor.action_log_prob(observation)
