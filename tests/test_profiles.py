@@ -52,6 +52,25 @@ def test_cpu_profiles_are_cpu_sized_and_paper_files_are_paper_sized(algo):
             assert cpu.get(key) == (expected or paper.get(key)), (algo, env_id, key)
 
 
+FETCH_MANIPULATION = ("FetchPickAndPlace-v4", "FetchPickAndPlaceFixed-v0", "FetchPush-v4", "FetchPushFixed-v0")
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_fetch_manipulation_entries_run_the_papers_grid_of_seven_options_of_seven_steps(algo):
+    for directory in (hyperparams_dir(), PAPER_DIR):
+        for env_id in FETCH_MANIPULATION:
+            entry = load_entry(algo, env_id, directory)
+            assert entry.get("env_kwargs") == {"max_episode_steps": 49}, (algo, env_id, directory)
+            assert entry.get("option_steps", 7) == 7, (algo, env_id, directory)
+
+
+def test_a_fetch_manipulation_model_makes_seven_decisions_per_episode():
+    model, env, _ = make_model("dipper_paper", "FetchPushFixed-v0", seed=0, overrides=dict(buffer_size=1000))
+    assert env.get_attr("spec")[0].max_episode_steps == 49
+    assert (model.option_steps, model.high_steps) == (7, 7)
+    env.close()
+
+
 # Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", sections 25, 26 and
 # 29), the CPU profile names them; the paper-scale file keeps the paper's one demonstration.
 KITCHEN = "FrankaKitchenMicrowaveBurner-v0"

@@ -704,7 +704,7 @@ _OUR_ENVS: dict[str, tuple[str, int, dict[str, Any]]] = {
     # K x T = 15 x 15 primitive steps; a new layout every episode, or the authors' single layout.
     "FetchFourRoomMaze-v0": ("sb3_dipper.envs.fetch:FetchFourRoomMazeEnv", 225, {}),
     "FetchFourRoomMazeFixed-v0": ("sb3_dipper.envs.fetch:FetchFourRoomMazeEnv", 225, {"fixed_layout": True}),
-    # Upstream's 50 steps; the paper's K x T = 7 x 7 = 49 is `gym.make(id, max_episode_steps=49)`.
+    # Upstream's 50 steps, as for the v4 ids; the zoo entries run the paper's K x T = 7 x 7 = 49 through env_kwargs.
     "FetchPushFixed-v0": ("sb3_dipper.envs.fetch:FetchPushFixedEnv", 50, {}),
     "FetchPickAndPlaceFixed-v0": ("sb3_dipper.envs.fetch:FetchPickAndPlaceFixedEnv", 50, {}),
 }
