@@ -77,6 +77,7 @@ BAD_SETTINGS = [
     ("target_update_interval", 0, "must be at least 1", None),
     ("stats_window_size", 0, "must be at least 1", None),
     ("random_subgoal_prob", NAN, PROBABILITY, None),
+    ("goal_subgoal_prob", 1.5, PROBABILITY, None),
     ("demo_share", 1.5, PROBABILITY, None),
     ("bc_coef", -1.0, NON_NEGATIVE, None),
     ("rl_coef", -1.0, NON_NEGATIVE, None),

@@ -471,3 +471,23 @@ def test_an_averaged_reference_starts_every_pair_at_a_tie():
     assert losses["uniform"] != pytest.approx(math.log(2), abs=1e-3)
     with pytest.raises(ValueError, match="acting_tau below 1"):
         tiny_model(DIPPER, short_maze(), reference="averaged")
+
+
+@pytest.mark.parametrize("normalize", [False, True])
+def test_goal_subgoals_execute_the_envs_goal_in_training_only(normalize):
+    env = short_maze(n_envs=2)
+    if normalize:
+        env = VecNormalize(env, norm_obs=True, norm_reward=False)
+    model = tiny_model(DIPPER, env, goal_subgoal_prob=1.0, random_subgoal_prob=0.0, planning="subgoal")
+    model.learn(120)
+    if normalize:  # the statistics stay those the model copies
+        env.training = False
+        model._refresh_low_normalizer()
+    observation = env.reset()
+    goals = env.get_original_obs()["desired_goal"] if normalize else observation["desired_goal"]
+    training = model._training_high_level_actions(observation)
+    np.testing.assert_allclose(model.subgoal_space.to_world(training), goals, atol=1e-4)
+    assert not model.last_planned.any() and not model.last_random_subgoals.any()
+    # predict (evaluation) proposes with the policy, never the goal.
+    predicted = model._high_level_actions(observation, deterministic=True)
+    assert not np.allclose(model.subgoal_space.to_world(predicted), goals, atol=1e-2)

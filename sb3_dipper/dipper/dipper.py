@@ -87,6 +87,9 @@ class DIPPER(HierarchicalAlgorithm):
     :param pairs_per_batch: preference pairs per higher-level gradient step
     :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
     :param random_subgoal_prob: probability of a uniformly random subgoal during training (exploration)
+    :param goal_subgoal_prob: probability that a training subgoal is the env's goal itself (beyond the paper; 0: off):
+        the higher-level trajectories then include the lower level driven by the goal, so the labelled pairs compare the
+        policy's subgoals with the goal's wherever both occur; evaluation and :meth:`predict` are unchanged
     :param high_gradient_steps: higher-level gradient steps per option
     :param nll_coef: weight of the preferred trajectory's negative log-likelihood added to the loss (RPO-style; 0: off)
     :param label_smoothing: epsilon of conservative DPO (beyond the paper): each strict label counts as flipped with
@@ -172,6 +175,7 @@ class DIPPER(HierarchicalAlgorithm):
         pairs_per_batch: int = 64,
         hindsight_goal_prob: float = 0.8,
         random_subgoal_prob: float = 0.2,
+        goal_subgoal_prob: float = 0.0,
         high_gradient_steps: int = 1,
         nll_coef: float = 0.0,
         label_smoothing: float = 0.0,
@@ -280,6 +284,7 @@ class DIPPER(HierarchicalAlgorithm):
         self.n_preference_pairs = n_preference_pairs
         self.pairs_per_batch = pairs_per_batch
         self.hindsight_goal_prob = hindsight_goal_prob
+        self.goal_subgoal_prob = as_float("goal_subgoal_prob", goal_subgoal_prob, 0.0, 1.0)
         self.high_gradient_steps = high_gradient_steps
         self.nll_coef = nll_coef
         self.label_smoothing = label_smoothing
@@ -380,9 +385,21 @@ class DIPPER(HierarchicalAlgorithm):
         self.last_planned = np.zeros(self.n_envs, dtype=bool)  # the warm-up's uniform subgoals are nobody's plan
         actions = super()._training_high_level_actions(observation)
         self.last_planned &= ~self.last_random_subgoals  # a random subgoal replaced the planner's waypoint
+        if self.goal_subgoal_prob > 0.0 and self.num_timesteps >= self.learning_starts:
+            goal_rows = (self._rng.random(self.n_envs) < self.goal_subgoal_prob) & ~self.last_random_subgoals
+            actions[goal_rows] = self._goals_as_subgoals(observation)[goal_rows]
+            self.last_planned &= ~goal_rows
         if self.planning == "subgoal" and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
+
+    def _goals_as_subgoals(self, observation: DictObs) -> np.ndarray:
+        """Each row's goal as a higher-level action (unit coordinates of the subgoal space)."""
+        assert self.subgoal_space is not None
+        desired = observation["desired_goal"]
+        if self.low_normalizer is not None:
+            desired = self.low_normalizer.unnormalize_goal(desired, "desired_goal")
+        return self.subgoal_space.to_unit(self.subgoal_space.project(desired)).astype(np.float32)
 
     def _plan(self, observation: DictObs, graph: SubgoalGraph) -> Plan:
         """The graph's waypoints toward each row's goal, in the subgoal space's world units, and the rows it planned."""
