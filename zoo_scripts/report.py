@@ -122,7 +122,7 @@ DIPPER_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("planner + goal, earlier runs", PLANNER_GOAL),
     ("paper's DIPPER", everywhere("dipper_paper")),
 ]
-BASELINE_COLUMNS: list[tuple[str, dict[str, Source]]] = [
+HIERARCHICAL_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("DIPPER-No-V", everywhere("dipper_nov")),
     (
         "HIER",
@@ -135,7 +135,13 @@ BASELINE_COLUMNS: list[tuple[str, dict[str, Source]]] = [
             },
         ),
     ),
+    ("HAC", everywhere("hac")),
+    ("SAGA", everywhere("saga")),
+    ("RAPS", everywhere("raps")),
     ("PIPER", everywhere("piper")),
+]
+FLAT_COLUMNS: list[tuple[str, dict[str, Source]]] = [
+    ("DPO-FLAT", everywhere("dpo_flat")),
     ("DAC", everywhere("dac")),
     ("SAC+HER", everywhere("sac")),
 ]
@@ -210,11 +216,12 @@ def cell(task: str, source: Source | None) -> tuple[Cell, list[plot.Curve]]:
 
 
 def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]]]]:
-    """The two markdown tables, the CSV rows and the figure's panels."""
+    """The three markdown tables (DIPPER and its controls, hierarchical baselines, flat baselines), the CSV rows and the
+    figure's panels."""
     csv_rows = [["task", "column", "source", "seeds", "success"]]
     panels: dict[str, dict[str, list[plot.Curve]]] = {task: {} for task in TASKS}
     tables = []
-    for columns, extra in ((DIPPER_COLUMNS, None), (BASELINE_COLUMNS, "anchor (PIPER's code)")):
+    for columns, extra in ((DIPPER_COLUMNS, None), (HIERARCHICAL_COLUMNS, None), (FLAT_COLUMNS, "anchor (PIPER's code)")):
         header = ["task (budget)", *(heading for heading, _ in columns), *([extra] if extra else [])]
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for task, (budget, _) in TASKS.items():
