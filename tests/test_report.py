@@ -46,6 +46,13 @@ def test_an_evaluated_cell_takes_each_runs_final_model_of_its_case(results):
     assert report.evaluated_cell(report.Evaluated("missing.csv", "x", "policy_alone")).text() == ""
 
 
+def test_whose_success_has_a_row_per_method_and_task_from_its_final_models(results, monkeypatch):
+    monkeypatch.setattr(report, "BASELINE_FINAL_MODELS", [("FetchPickAndPlaceFixed-v0", "HAC", "share.csv", "/dipper/")])
+    table = report.whose_success().splitlines()
+    assert table[0] == "| task | method | as trained | higher policy untrained | goal as every subgoal |"
+    assert table[2] == "| `FetchPickAndPlaceFixed-v0` | HAC |  |  | 0.80 +- 0.10 (2) |"
+
+
 def test_the_matrix_is_written_between_the_markers_and_refused_without_them(results, tmp_path):
     document = tmp_path / "doc.md"
     document.write_text("before\n<!-- results-matrix -->\nold table\n<!-- /results-matrix -->\nafter\n")
@@ -54,6 +61,8 @@ def test_the_matrix_is_written_between_the_markers_and_refused_without_them(resu
     (tmp_path / "plain.md").write_text("no markers\n")
     with pytest.raises(SystemExit, match="no <!-- results-matrix -->"):
         report.write_between_markers(tmp_path / "plain.md", "| new |")
+    with pytest.raises(SystemExit, match="no <!-- whose-success -->"):
+        report.write_between_markers(document, "| new |", "whose-success")
 
 
 def test_every_column_names_one_configuration_per_task():

@@ -44,7 +44,6 @@ from sb3_dipper.common.files import write_bytes_atomically
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "docs" / "benchmarks"
 LEARNING_CSV = RESULTS / "paper-tasks-cpu.csv"
-MARKER = re.compile(r"(<!-- results-matrix -->\n).*?(<!-- /results-matrix -->)", re.DOTALL)
 
 TASKS = {  # task: (budget in primitive steps, short name)
     "FetchPickAndPlaceFixed-v0": (150_000, "fixed pick-and-place"),
@@ -145,6 +144,21 @@ FLAT_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("DAC", everywhere("dac")),
     ("SAC+HER", everywhere("sac")),
 ]
+# Whose success, for the hierarchical baselines: their final models as trained, with the higher policy untrained and
+# with the goal as every subgoal (zoo_scripts/planner_share.py), per task and method: (csv, the runs' path part).
+BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
+    (PNP_FIXED, "HAC", "planner-share-baselines.csv", "/hac/"),
+    (PNP_FIXED, "SAGA", "planner-share-baselines.csv", "/saga/"),
+    (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
+    (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
+    (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
+]
+FINAL_MODEL_CASES = {
+    "as_trained": "as trained",
+    "untrained_policy": "higher policy untrained",
+    "lower_level_alone": "goal as every subgoal",
+}
+
 ANCHORS = {  # PIPER's public figures (the authors' code), read off their curves: the paper's own anchors
     PNP_FIXED: "about 0.75 at 147k",
     PUSH_FIXED: "about 0.75 at 640k",
@@ -241,11 +255,23 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
     return "\n\n".join(tables), csv_rows, panels
 
 
-def write_between_markers(path: Path, text: str) -> None:
+def whose_success() -> str:
+    """The hierarchical baselines' final models, three ways: the table between ``<!-- whose-success -->`` markers."""
+    header = ["task", "method", *FINAL_MODEL_CASES.values()]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for task, method, csv_name, run in BASELINE_FINAL_MODELS:
+        cells = [evaluated_cell(Evaluated(csv_name, run, case)).text() for case in FINAL_MODEL_CASES]
+        lines.append(f"| `{task}` | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_between_markers(path: Path, text: str, name: str = "results-matrix") -> None:
+    """Replace what lies between ``<!-- name -->`` and ``<!-- /name -->`` in ``path`` by ``text``."""
+    marker = re.compile(rf"(<!-- {name} -->\n).*?(<!-- /{name} -->)", re.DOTALL)
     content = path.read_text()
-    if not MARKER.search(content):
-        raise SystemExit(f"{path} has no <!-- results-matrix --> ... <!-- /results-matrix --> markers to write between")
-    write_bytes_atomically(path, MARKER.sub(lambda match: match[1] + text + "\n" + match[2], content).encode())
+    if not marker.search(content):
+        raise SystemExit(f"{path} has no <!-- {name} --> ... <!-- /{name} --> markers to write between")
+    write_bytes_atomically(path, marker.sub(lambda match: match[1] + text + "\n" + match[2], content).encode())
 
 
 def main() -> None:
@@ -253,10 +279,12 @@ def main() -> None:
     parser.add_argument("--write", action="store_true", help="write into BENCHMARKS.md, README.md and docs/benchmarks/")
     args = parser.parse_args()
     tables, csv_rows, panels = matrix()
-    print(tables)
+    whose = whose_success()
+    print(tables, whose, sep="\n\n")
     if args.write:
         for document in (REPO / "BENCHMARKS.md", REPO / "README.md"):
             write_between_markers(document, tables)
+        write_between_markers(REPO / "BENCHMARKS.md", whose, "whose-success")
         lines = io.StringIO()
         csv.writer(lines, lineterminator="\n").writerows(csv_rows)
         write_bytes_atomically(RESULTS / "paper-tasks-matrix.csv", lines.getvalue().encode())
