@@ -491,3 +491,21 @@ def test_goal_subgoals_execute_the_envs_goal_in_training_only(normalize):
     # predict (evaluation) proposes with the policy, never the goal.
     predicted = model._high_level_actions(observation, deterministic=True)
     assert not np.allclose(model.subgoal_space.to_world(predicted), goals, atol=1e-2)
+
+
+def test_a_run_is_measured_on_the_env_kwargs_it_trained_with(tmp_path):
+    from collections import OrderedDict
+
+    import yaml
+
+    from zoo_scripts.configs import run_env_kwargs
+
+    (tmp_path / "Env-v0").mkdir()
+    # rl-zoo3 saves the hyperparameters as a Python-tagged OrderedDict.
+    saved = OrderedDict([("batch_size", 256), ("env_kwargs", {"max_episode_steps": 50})])
+    (tmp_path / "Env-v0" / "config.yml").write_text(yaml.dump(saved))
+    assert run_env_kwargs(tmp_path, "Env-v0") == {"max_episode_steps": 50}
+    assert run_env_kwargs(tmp_path, "Other-v0") is None
+    (tmp_path / "Env-v0" / "config.yml").write_text("!!python/object/apply:os.system ['echo unsafe']\n")
+    with pytest.raises(ValueError, match="not the configuration rl-zoo3 saves"):
+        run_env_kwargs(tmp_path, "Env-v0")

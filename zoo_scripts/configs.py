@@ -101,6 +101,30 @@ def make_env(env_id: str, entry: dict[str, Any], seed: int, n_envs: int | None =
     return env
 
 
+class _ZooConfigLoader(yaml.SafeLoader):
+    """Reads the ``config.yml`` rl-zoo3 saves in a run folder (an ``OrderedDict`` of the hyperparameters) as a dict,
+    without constructing any other Python object."""
+
+
+_ZooConfigLoader.add_constructor(
+    "tag:yaml.org,2002:python/object/apply:collections.OrderedDict",
+    lambda loader, node: dict(loader.construct_sequence(node, deep=True)[0]),  # type: ignore[arg-type]
+)
+
+
+def run_env_kwargs(run: Path, env_id: str) -> dict[str, Any] | None:
+    """The ``env_kwargs`` a zoo run trained with (its ``<env>/config.yml``, the YAML entry with ``-params`` and
+    ``--env-kwargs`` applied); ``None`` where the run saved no configuration or had none."""
+    config = run / env_id / "config.yml"
+    if not config.is_file():
+        return None
+    try:
+        hyperparams = yaml.load(config.read_text(), Loader=_ZooConfigLoader)  # a SafeLoader: no objects built
+    except yaml.YAMLError as error:
+        raise ValueError(f"{config} is not the configuration rl-zoo3 saves: {error}") from error
+    return hyperparams.get("env_kwargs") if isinstance(hyperparams, dict) else None
+
+
 def trained_run(
     run: Path, algo: str, env_id: str, seed: int, n_envs: int = 1, model_file: Path | None = None
 ) -> tuple[BaseAlgorithm, VecEnv]:
@@ -110,8 +134,13 @@ def trained_run(
     rl-zoo3 keeps one set of statistics per run (``<run>/<env>/vecnormalize.pkl``, written with the best and the
     final model), none per checkpoint. A hierarchical model carries its own copy of the statistics it trained with
     (its lower level's normaliser, refreshed at every step), so a checkpoint is measured with the statistics of its
-    own step, not with those of a later or earlier save."""
-    env = make_env(env_id, {**load_entry(algo, env_id), "normalize": False}, seed=seed, n_envs=n_envs)
+    own step, not with those of a later or earlier save. The env takes the run's own ``env_kwargs`` (its episode length,
+    for one), which may differ from today's YAML entry."""
+    entry = {**load_entry(algo, env_id), "normalize": False}
+    saved_env_kwargs = run_env_kwargs(run, env_id)
+    if saved_env_kwargs is not None:
+        entry["env_kwargs"] = saved_env_kwargs
+    env = make_env(env_id, entry, seed=seed, n_envs=n_envs)
     statistics = run / env_id / "vecnormalize.pkl"
     if statistics.exists():
         env = VecNormalize.load(str(statistics), env)
