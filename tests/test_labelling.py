@@ -493,8 +493,6 @@ def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
 
     answers = {}
     first = shown_pair()
-    if os.environ.get("SB3_DIPPER_SCREENSHOT"):  # docs/labelling.png is made this way
-        chromium.save_screenshot(os.environ["SB3_DIPPER_SCREENSHOT"])
     chromium.find_element(By.ID, "btn-left").click()
     answers[first] = 1.0
     second = wait.until(lambda _: shown_pair() != first and shown_pair())
@@ -669,6 +667,23 @@ def request_page(
 
 def label_body(pair_id: object = 0, client: str = "x", answer: str = "left") -> bytes:
     return json.dumps({"pair_id": pair_id, "client": client, "answer": answer}).encode()
+
+
+def test_the_page_says_how_to_label(served):
+    port, _ = served
+    status, body = request_page(port, "GET", "/")
+    page = " ".join(body.decode().split())  # the HTML's line breaks as spaces
+    assert status == 200 and '<details id="how-to" open>' in page
+    for how_to in (
+        "<b>A pair</b> is two trajectories of the agent",
+        "<kbd>s</kbd> skip",
+        "subgoal (&times;, numbered in order)",
+        "spends an option",
+        "<b>A hindsight goal.</b>",
+        "not the goal the agent was given, but a place one of the two trajectories reached",
+        "so they may start at different places",
+    ):
+        assert how_to in page
 
 
 def test_the_page_answers_only_requests_that_name_this_machine(served):
