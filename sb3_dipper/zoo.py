@@ -27,6 +27,9 @@ the training process while it trains; the model's ``preference_source`` must sen
     sb3-dipper-zoo train --algo dipper --env PointMazeFourRooms-v0 -params "preference_source:'people:logs/labels'" \
         --label-page 5000
 
+That page stops when training ends; ``sb3-dipper-label --run logs/labels`` serves the queue on its own, for as long as
+the person needs.
+
 rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so it is
 imported only here, and only when a command runs.
 """
@@ -375,8 +378,8 @@ def run_control_parser() -> argparse.ArgumentParser:
     flags.add_argument(
         "--label-page",
         metavar="[HOST:]PORT",
-        help="serve the labelling page of the model's label queue (preference_source 'people:DIR') while it trains; "
-        "port 0: a free port",
+        help="serve the labelling page of the model's label queue (preference_source 'people:DIR') while it trains "
+        "(port 0: a free port); sb3-dipper-label --run DIR serves it after training",
     )
     return parser
 
