@@ -13,11 +13,11 @@ TEST_WORKERS ?= 2
 STAMP := $(VENV)/.sb3-dipper-installed
 TEST_STAMP := $(VENV)/.sb3-dipper-tests-installed
 # The documentation tools (sphinx, its theme, myst-parser for the Markdown changelog, a packaged MathJax) and flask
-# for the labelling page's API page, for `make docs` only.
+# for the labelling page's API page, for `make docs`, and markdown for `make screenshots`.
 DOCS_STAMP := $(VENV)/.sb3-dipper-docs-installed
 export MUJOCO_GL ?= egl
 
-.PHONY: demo test test-slow lint format venv clean docs
+.PHONY: demo test test-slow lint format venv clean docs screenshots
 
 venv: $(STAMP)
 
@@ -49,6 +49,11 @@ test: $(TEST_STAMP)
 docs: $(DOCS_STAMP)
 	$(PY) -m sphinx -W --keep-going -q -b doctest -d docs/_build/doctrees docs docs/_build/doctest
 	$(PY) -m sphinx -W --keep-going -q -b html -d docs/_build/doctrees docs docs/_build/html
+
+# docs/_static/screenshots/: the README and the labelling page at 1280 px wide, in the system's headless Chromium (which
+# the test install brings); markdown renders the README. tests/test_screenshots.py fails until they show the sources.
+screenshots: $(TEST_STAMP) $(DOCS_STAMP)
+	$(PY) zoo_scripts/screenshots.py
 
 test-slow: $(TEST_STAMP)
 	$(PY) -m pytest -q -m slow --durations=15

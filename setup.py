@@ -48,8 +48,16 @@ setup(
         # sb3-dipper-label: the labelling page (Flask) and its pictures of pairs (matplotlib).
         "label": ["flask>=3", "matplotlib>=3.7"],
         # `make docs`: the Sphinx site (the SB3 family's theme; myst-parser includes the Markdown changelog; MathJax from
-        # a package, so that math renders without a network) and flask, which autodoc needs to import the labelling page.
-        "docs": ["sphinx>=7,<10", "sphinx-rtd-theme>=2,<4", "myst-parser>=2,<6", "sphinx-mathjax-offline>=0.0.2", "flask>=3"],
+        # a package, so that math renders without a network) and flask, which autodoc needs to import the labelling page;
+        # `make screenshots`: markdown renders the README as HTML.
+        "docs": [
+            "sphinx>=7,<10",
+            "sphinx-rtd-theme>=2,<4",
+            "myst-parser>=2,<6",
+            "sphinx-mathjax-offline>=0.0.2",
+            "flask>=3",
+            "markdown>=3.4",
+        ],
         "tests": [
             "pytest>=8",
             "pytest-timeout",

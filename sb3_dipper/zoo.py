@@ -27,6 +27,9 @@ the training process while it trains; the model's ``preference_source`` must sen
     sb3-dipper-zoo train --algo dipper --env PointMazeFourRooms-v0 -params "preference_source:'people:logs/labels'" \
         --label-page 5000
 
+That page stops when training ends; ``sb3-dipper-label --run logs/labels`` serves the queue on its own, for as long as
+the person needs.
+
 rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so it is
 imported only here, and only when a command runs.
 """
@@ -242,7 +245,8 @@ def command_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="sb3-dipper-zoo",
         description="rl-zoo3's command line with the sb3-dipper algorithms (" + ", ".join(ZOO_ALGORITHMS) + ").",
-        epilog="Run `sb3-dipper-zoo COMMAND --help` for the flags of a command (they are rl-zoo3's own).",
+        epilog="Run `sb3-dipper-zoo COMMAND --help` for the flags of a command: rl-zoo3's own, and for train also "
+        "--pause-after-minutes, --resume and --label-page.",
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for command, (_, description) in COMMANDS.items():
@@ -351,14 +355,64 @@ def parse_label_page(text: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port)
 
 
+def run_control_parser() -> argparse.ArgumentParser:
+    """The flags ``sb3-dipper-zoo train`` adds to rl-zoo3's: read by :func:`split_run_control`, listed by ``--help``."""
+    parser = argparse.ArgumentParser(prog="sb3-dipper-zoo train", usage=argparse.SUPPRESS, add_help=False, exit_on_error=False)
+    flags = parser.add_argument_group(
+        "sb3-dipper-zoo train's own flags",
+        "On top of rl-zoo3's flags above. --conf-file defaults to sb3-dipper's hyperparams/<algo>.yml, and --env also "
+        "takes gymnasium's module:EnvId form.",
+    )
+    flags.add_argument(
+        "--pause-after-minutes",
+        type=float,
+        metavar="M",
+        help="after M minutes of training, save a resume checkpoint in the run folder and stop",
+    )
+    flags.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN_FOLDER",
+        help="continue the run paused in RUN_FOLDER to its whole budget (give the same other flags)",
+    )
+    flags.add_argument(
+        "--label-page",
+        metavar="[HOST:]PORT",
+        help="serve the labelling page of the model's label queue (preference_source 'people:DIR') while it trains "
+        "(port 0: a free port); sb3-dipper-label --run DIR serves it after training",
+    )
+    return parser
+
+
+def asks_for_help(argv: list[str]) -> bool:
+    """Whether ``argv`` holds ``-h`` or ``--help`` (or an abbreviation, such as ``--he``, that argparse takes for it)."""
+    parser = argparse.ArgumentParser(add_help=False, exit_on_error=False)
+    parser.add_argument("-h", "--help", action="store_true")
+    try:
+        return parser.parse_known_args(argv)[0].help
+    except argparse.ArgumentError:
+        return False
+
+
+def print_train_help() -> None:
+    """``sb3-dipper-zoo train --help``: rl-zoo3's train flags (with our algorithms among ``--algo``'s), then ours."""
+    import rl_zoo3.train
+
+    register()
+    sys.argv = ["sb3-dipper-zoo train", "--help"]
+    try:
+        rl_zoo3.train.train()
+    except SystemExit as exit_:  # argparse exits once it has printed the help
+        if exit_.code not in (0, None):
+            raise
+    print()
+    print(run_control_parser().format_help(), end="", flush=True)
+
+
 def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
     """Our flags out of ``train``'s argv (rl-zoo3 would refuse them), with checks that name the flag and the fix."""
-    parser = argparse.ArgumentParser(add_help=False, exit_on_error=False)
-    parser.add_argument("--pause-after-minutes", type=float)
-    parser.add_argument("--resume", type=Path)
-    parser.add_argument("--label-page")
     try:
-        flags, rest = parser.parse_known_args(argv)
+        flags, rest = run_control_parser().parse_known_args(argv)
     except argparse.ArgumentError as error:
         raise ValueError(f"sb3-dipper-zoo train: {error}") from None
     if flags.pause_after_minutes is not None and not flags.pause_after_minutes >= 0:
@@ -668,6 +722,10 @@ def _install_run_folder_claim(control: RunControl | None = None) -> None:
 def main() -> None:
     """``sb3-dipper-zoo {train,enjoy,record_video,plot_train,plot_from_file,all_plots} ...``: rl-zoo3's CLI, our algorithms."""
     command = command_parser().parse_args(sys.argv[1:2]).command
+    if command == "train" and asks_for_help(sys.argv[2:]):
+        # Before our flags are checked: a help request is answered whatever else the command line holds.
+        print_train_help()
+        return
     control, argv = split_run_control(sys.argv[2:]) if command == "train" else (RunControl(), sys.argv[2:])
     register(control)
     argv = zoo_argv(command, argv)

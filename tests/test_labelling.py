@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 import urllib.request
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,8 @@ from sb3_dipper.common.preferences import (
 from sb3_dipper.labelling.app import MAX_BODY_BYTES, LabellingServer, create_app, serve_in_background
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 from sb3_dipper.labelling.sources import (
+    PAIRS_A_PERSON_LABELS_A_MINUTE,
+    PEOPLE_PAIRS_WARNING_THRESHOLD,
     NoisyLabeler,
     QueuedPreferenceSource,
     label_queue_directory,
@@ -114,6 +117,46 @@ def test_pending_pairs_count_against_the_label_budget(tmp_path):
     labels = people(tmp_path, budget=3).label(random_pairs(4, seed=1))
     assert LabelQueue(tmp_path).queued_ids() == [0, 1, 2]  # one more fitted the budget
     assert np.isnan(labels[0]) and np.array_equal(labels[1:], SCRIPT_LABELER.label(random_pairs(4, seed=1))[1:])
+
+
+def people_warnings(caught: list[warnings.WarningMessage]) -> list[str]:
+    return [str(warning.message) for warning in caught if "asks people for" in str(warning.message)]
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, PIPER, DPOFlat])
+def test_a_label_budget_beyond_what_people_label_is_warned_about_once_at_setup(tmp_path, model_class):
+    """The maze profile's budget, 50,000 pairs, sent to people: the queue would grow by 256 files a training round."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = any_tiny_model(model_class, short_maze(), preference_source=f"people:{tmp_path}", n_preference_pairs=50_000)
+        # DPO-FLAT sets its source up when it first learns; before learning_starts, so no pair is queued yet.
+        model.learn(10)
+        model.learn(10, reset_num_timesteps=False)
+    [message] = people_warnings(caught)
+    assert "n_preference_pairs=50,000 asks people for up to 50,000 pairs" in message and str(tmp_path) in message
+    assert "hours of labelling" in message and f"'budget': {60 * PAIRS_A_PERSON_LABELS_A_MINUTE}" in message
+
+
+@pytest.mark.parametrize(
+    "spec, label_budget, asked",
+    [("people:{dir}", PEOPLE_PAIRS_WARNING_THRESHOLD, None), ("people:{dir}", 4000, 4000),
+     ("mixed:{dir}:0.25", 4000, None), ("mixed:{dir}:0.3", 4000, 1200),
+     (dict(kind="people", directory="{dir}", budget=300), 50_000, None),
+     (dict(kind="people", directory="{dir}", budget=2000), 50_000, 2000)],
+)  # fmt: skip
+def test_the_warning_counts_only_the_pairs_people_are_asked_for(tmp_path, spec, label_budget, asked):
+    if isinstance(spec, str):
+        spec = spec.replace("{dir}", str(tmp_path))
+    else:
+        spec = {**spec, "directory": str(tmp_path)}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        preference_source_from(spec, SCRIPT_LABELER, label_budget=label_budget)
+    messages = people_warnings(caught)
+    if asked is None:
+        assert messages == []
+    else:
+        assert len(messages) == 1 and f"asks people for up to {asked:,} pairs" in messages[0]
 
 
 def test_mixed_mode_records_who_labelled_each_pair(tmp_path):
@@ -450,8 +493,6 @@ def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
 
     answers = {}
     first = shown_pair()
-    if os.environ.get("SB3_DIPPER_SCREENSHOT"):  # docs/labelling.png is made this way
-        chromium.save_screenshot(os.environ["SB3_DIPPER_SCREENSHOT"])
     chromium.find_element(By.ID, "btn-left").click()
     answers[first] = 1.0
     second = wait.until(lambda _: shown_pair() != first and shown_pair())
@@ -626,6 +667,23 @@ def request_page(
 
 def label_body(pair_id: object = 0, client: str = "x", answer: str = "left") -> bytes:
     return json.dumps({"pair_id": pair_id, "client": client, "answer": answer}).encode()
+
+
+def test_the_page_says_how_to_label(served):
+    port, _ = served
+    status, body = request_page(port, "GET", "/")
+    page = " ".join(body.decode().split())  # the HTML's line breaks as spaces
+    assert status == 200 and '<details id="how-to" open>' in page
+    for how_to in (
+        "<b>A pair</b> is two trajectories of the agent",
+        "<kbd>s</kbd> skip",
+        "subgoal (&times;, numbered in order)",
+        "spends an option",
+        "<b>A hindsight goal.</b>",
+        "not the goal the agent was given, but a place one of the two trajectories reached",
+        "so they may start at different places",
+    ):
+        assert how_to in page
 
 
 def test_the_page_answers_only_requests_that_name_this_machine(served):

@@ -20,6 +20,7 @@ from sb3_dipper.zoo import (
     hyperparams_dir,
     keep_params_without_value_term,
     main,
+    run_control_parser,
     zoo_argv,
 )
 from tests.conftest import short_maze, tiny_model
@@ -109,6 +110,19 @@ def test_the_command_line_prints_its_usage(argv, exit_code, monkeypatch, capsys)
     assert "usage: sb3-dipper-zoo" in printed.out + printed.err
     if exit_code == 0:
         assert all(command in printed.out for command in ("train", "enjoy", "record_video", "COMMAND --help"))
+
+
+def test_train_help_lists_rl_zoos_flags_and_ours_each_with_its_help(tmp_path):
+    # --resume names no paused run: a help request is answered before our flags are checked.
+    result = zoo("train", "--resume", "nowhere", "-h", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    help_text = " ".join(result.stdout.split())  # argparse wraps lines at the terminal's width
+    assert "usage: sb3-dipper-zoo train" in help_text and "--n-timesteps" in help_text and "dipper" in help_text
+    ours = [action for action in run_control_parser()._actions if action.option_strings]
+    assert {flag for action in ours for flag in action.option_strings} == {"--pause-after-minutes", "--resume", "--label-page"}
+    for action in ours:
+        assert action.help and f"{action.option_strings[0]} {action.metavar} {action.help}" in help_text
+    assert help_text.index("--n-timesteps") < help_text.index("sb3-dipper-zoo train's own flags")
 
 
 @pytest.mark.parametrize("algo_flag", [["--algo", "dipper"], ["--algo=dipper"], ["--alg", "dipper"]])

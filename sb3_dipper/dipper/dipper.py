@@ -338,7 +338,9 @@ class DIPPER(HierarchicalAlgorithm):
             self._goal_reached = sparse_goal_reached_fn(self.env)
             value_score = self._pair_value_score if self.value_reg == "score" else None
             script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
-            self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
+            self._labeler = preference_source_from(
+                self.preference_source, script, self.env, self.subgoal_space, self.seed, self.n_preference_pairs
+            )
 
     def _predict_plans(self) -> bool:
         return self.subgoal_graph is not None and self.plan_in_predict

@@ -325,7 +325,7 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
     def _new_labeler(self) -> PreferenceSource:
         assert self.env is not None
         script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env))
-        return preference_source_from(self.preference_source, script, self.env, None, self.seed)
+        return preference_source_from(self.preference_source, script, self.env, None, self.seed, self.n_preference_pairs)
 
     # ---------------------------------------------------------------------------------------------------- acting
 

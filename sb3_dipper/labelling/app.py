@@ -51,24 +51,39 @@ PAGE = """<!doctype html>
 <meta charset="utf-8">
 <title>sb3-dipper: which trajectory is better?</title>
 <style>
-  body { font-family: sans-serif; margin: 1.5em; background: #fafafa; }
+  body { font-family: sans-serif; margin: 1.5em; background: #fafafa; color: #222; font-size: 16px; }
+  h1 { font-size: 1.5em; margin: 0 0 .3em; }
+  #layout { display: grid; grid-template-columns: minmax(0, 1fr) 21rem; gap: 1.5em; align-items: start; }
+  @media (max-width: 1000px) { #layout { grid-template-columns: minmax(0, 1fr); } }
   #pair { display: flex; gap: 1.5em; align-items: flex-start; }
-  .side { background: white; padding: .5em; border: 1px solid #ccc; border-radius: 6px; text-align: center; }
-  .side img { max-width: 100%; }
-  #buttons { margin: 1em 0; display: flex; gap: .8em; }
+  .side { flex: 1 1 0; min-width: 0; background: white; padding: .5em; border: 1px solid #ccc; border-radius: 6px;
+    text-align: center; font-size: 1.1em; font-weight: bold; }
+  .side img { display: block; max-width: 100%; margin: .3em auto 0; }
+  #starts { color: #444; margin: .6em 0 0; }
+  #buttons { margin: 1em 0; display: flex; flex-wrap: wrap; gap: .8em; }
   button { font-size: 1.1em; padding: .5em 1.2em; cursor: pointer; }
-  #counts { color: #444; }
+  #counts { color: #444; margin: 0 0 1em; }
   #message { color: #a00; min-height: 1.2em; }
+  #how-to { background: white; border: 1px solid #ccc; border-radius: 6px; padding: .2em 1em; line-height: 1.4; }
+  #how-to summary { font-weight: bold; font-size: 1.15em; cursor: pointer; padding: .5em 0; }
+  #how-to p { margin: .5em 0 .8em; }
+  kbd { border: 1px solid #aaa; border-radius: 3px; padding: 0 .3em; background: #f3f3f3; font-size: .9em; }
+  .subgoal { color: #d62728; font-weight: bold; }
+  .goal { color: #b8860b; }
 </style>
 </head>
 <body>
-<h2>Which trajectory gets to the goal better?</h2>
+<h1>Which trajectory gets to the goal better?</h1>
 <p id="counts">labelled <b id="labelled">0</b> &middot; waiting <b id="waiting">0</b>
   &middot; pair <span id="pair-id">-</span></p>
+<div id="layout">
+<main>
 <div id="pair">
-  <div class="side"><div>Left</div><img id="left-img" alt="left trajectory"></div>
-  <div class="side"><div>Right</div><img id="right-img" alt="right trajectory"></div>
+  <div class="side">Left<img id="left-img" alt="left trajectory"></div>
+  <div class="side">Right<img id="right-img" alt="right trajectory"></div>
 </div>
+<p id="starts">The two trajectories are drawn separately from the agent's recent episodes, so they may start at
+  different places: judge how well each gets from its own start to the goal.</p>
 <div id="buttons">
   <button id="btn-left" data-answer="left">&larr; Left is better (a)</button>
   <button id="btn-equal" data-answer="equal">Equal (&darr; / e)</button>
@@ -76,6 +91,27 @@ PAGE = """<!doctype html>
   <button id="btn-skip" data-answer="skip">Skip (s)</button>
 </div>
 <p id="message"></p>
+</main>
+<details id="how-to" open>
+<summary>How to label</summary>
+<p><b>A pair</b> is two trajectories of the agent. Pick the one that gets to the
+  <span class="goal">goal (&#9733;; inside its yellow circle counts)</span> better: it gets there, gets there sooner,
+  or ends nearer.</p>
+<p><b>Answer</b> with the buttons or keys: <kbd>a</kbd>/<kbd>&larr;</kbd> left, <kbd>d</kbd>/<kbd>&rarr;</kbd>
+  right, <kbd>e</kbd>/<kbd>&darr;</kbd> equal, <kbd>s</kbd> skip (you cannot tell). Each answer is saved at once.</p>
+<p><b>Options and subgoals.</b> The agent's higher level proposes a
+  <span class="subgoal">subgoal (&times;, numbered in order)</span>; its lower level then spends an option, a few
+  steps, trying to reach it. A dot marks where each option ended (a dotted line joins it to its subgoal): the dots
+  from the black square, the start, are the trajectory. Judge the dots; a subgoal is only a request. Robot tasks
+  show frames instead: the start, then the scene after some of the options.</p>
+<p><b>A hindsight goal.</b> Usually both sides share a hindsight goal: not the goal the agent was given, but a place
+  one of the two trajectories reached, so that both answer the same question. A trajectory may pass it without
+  aiming at it; judge it all the same. If the two goals differ, judge each side toward its own.</p>
+<p><b>Different starts.</b> Each side is a whole episode drawn at random from the agent's recent ones, usually two
+  different episodes, each starting where the task put the agent. (DPO-FLAT's pairs are two short segments cut from
+  anywhere in their episodes.)</p>
+</details>
+</div>
 <script>
 let client = sessionStorage.getItem("client");
 if (!client) {

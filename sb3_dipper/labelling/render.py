@@ -14,10 +14,12 @@
 from __future__ import annotations
 
 import io
+import math
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from matplotlib import patheffects
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 
@@ -27,7 +29,14 @@ from sb3_dipper.common.subgoals import SubgoalSpace
 SIDES = ("left", "right")
 # At most this many frames per strip (the start, then evenly spaced reached states).
 MAX_FRAMES = 6
+# Frames per row: a trajectory's picture stays about as wide as a maze's, so two fit side by side on the page.
+FRAMES_PER_ROW = 3
 COLOURS = {"left": "tab:blue", "right": "tab:orange"}
+# Pictures are drawn at the size the page shows them (4 inches, 400 px: a side of the pair in a 1280-px window beside
+# the how-to), so their text is not scaled down: titles, legends and subgoal numbers in points at this resolution.
+DPI = 100
+TITLE_SIZE = 13
+LABEL_SIZE = 11
 
 
 class PairRenderer:
@@ -75,7 +84,7 @@ class PairRenderer:
         else:
             figure = self._frame_strip_figure(pair, index, side)
         buffer = io.BytesIO()
-        figure.savefig(buffer, format="png", dpi=80)
+        figure.savefig(buffer, format="png", dpi=DPI)
         return buffer.getvalue()
 
     # ---------------------------------------------------------------------------------------------------- mazes
@@ -84,7 +93,7 @@ class PairRenderer:
         maze = self.env.unwrapped.maze  # type: ignore[attr-defined]
         scale = maze.maze_size_scaling
         # matplotlib's object API, not pyplot: no global state, so no backend to choose and nothing to close.
-        figure = Figure(figsize=(4.5, 4.5))
+        figure = Figure(figsize=(4.0, 4.9))
         axes = figure.subplots()
         for row, cells in enumerate(maze.maze_map):
             for col, cell in enumerate(cells):
@@ -98,26 +107,46 @@ class PairRenderer:
         goal = pair.observations["desired_goal"][index, 0, 0, :2]
         colour = COLOURS[side]
         path = np.vstack([start, reached])
-        axes.plot(path[:, 0], path[:, 1], "-o", color=colour, markersize=5, label="reached after each option")
-        axes.plot(*start, "s", color="black", markersize=8, label="start")
+        axes.plot(path[:, 0], path[:, 1], "-o", color=colour, markersize=6, linewidth=2, label="an option ended here")
+        axes.plot(*start, "s", color="black", markersize=10, label="start", zorder=5)  # above a goal drawn over it
         if self.subgoal_space is not None:
             subgoals = self.subgoal_space.to_world(pair.actions[index, 0, mask])[:, :2]
-            axes.plot(subgoals[:, 0], subgoals[:, 1], "x", color="tab:red", markersize=7, mew=2, label="proposed subgoal")
+            axes.plot(subgoals[:, 0], subgoals[:, 1], "x", color="tab:red", markersize=9, mew=2.5, label="subgoal, in order")
+            # White-edged numbers: readable over the walls and the paths alike.
+            outline = [patheffects.withStroke(linewidth=3, foreground="white")]
             for number, (subgoal, point) in enumerate(zip(subgoals, reached, strict=True), start=1):
-                axes.annotate(str(number), subgoal, fontsize=7, color="tab:red", xytext=(3, 3), textcoords="offset points")
-                axes.plot([subgoal[0], point[0]], [subgoal[1], point[1]], ":", color="tab:red", linewidth=0.8)
+                axes.annotate(
+                    str(number),
+                    subgoal,
+                    fontsize=LABEL_SIZE + 1,
+                    fontweight="bold",
+                    color="tab:red",
+                    xytext=(5, 4),
+                    textcoords="offset points",
+                    path_effects=outline,
+                )
+                axes.plot([subgoal[0], point[0]], [subgoal[1], point[1]], ":", color="tab:red", linewidth=1.2)
         threshold = getattr(self.env.unwrapped, "distance_threshold", 0.45)
         axes.add_patch(Circle(tuple(goal), threshold, color="gold", alpha=0.35))
-        axes.plot(*goal, "*", color="goldenrod", markersize=16, label="goal")
+        axes.plot(*goal, "*", color="goldenrod", markersize=20, label="goal")
         half_width = maze.x_map_center, maze.y_map_center
         axes.set_xlim(-half_width[0], half_width[0])
         axes.set_ylim(-half_width[1], half_width[1])
         axes.set_aspect("equal")
         axes.set_xticks([])
         axes.set_yticks([])
-        axes.set_title(f"{side}: {int(mask.sum())} options", color=colour)
-        axes.legend(loc="lower right", fontsize=6, framealpha=0.8)
-        figure.tight_layout()
+        axes.set_title(f"{int(mask.sum())} options", color=colour, fontsize=TITLE_SIZE, fontweight="bold")
+        # Below the map, not on it: a legend inside would hide part of the maze.
+        figure.legend(
+            *axes.get_legend_handles_labels(),
+            loc="lower center",
+            ncols=2,
+            fontsize=LABEL_SIZE,
+            frameon=False,
+            handletextpad=0.4,
+            columnspacing=1.0,
+        )
+        figure.tight_layout(rect=(0, 0.13, 1, 1))
         return figure
 
     # ---------------------------------------------------------------------------------------------------- robotics
@@ -132,13 +161,17 @@ class PairRenderer:
         kitchen = hasattr(self.env.unwrapped, "tasks")
         if kitchen:
             states.append(("goal", goal))
-        figure = Figure(figsize=(2.0 * len(states), 2.3))
-        axes = figure.subplots(1, len(states))
-        for axis, (title, achieved) in zip(np.atleast_1d(axes), states, strict=True):
-            axis.imshow(self._frame(achieved, goal))
-            axis.set_title(title, fontsize=8, color="goldenrod" if title == "goal" else "black")
+        columns = min(FRAMES_PER_ROW, len(states))
+        rows = math.ceil(len(states) / columns)
+        figure = Figure(figsize=(1.33 * columns, 1.45 * rows + 0.4))
+        axes = np.atleast_1d(figure.subplots(rows, columns)).ravel()
+        for axis in axes[len(states) :]:
             axis.axis("off")
-        figure.suptitle(f"{side}: {int(mask.sum())} options", color=COLOURS[side], fontsize=10)
+        for axis, (title, achieved) in zip(axes[: len(states)], states, strict=True):
+            axis.imshow(self._frame(achieved, goal))
+            axis.set_title(title, fontsize=LABEL_SIZE, color="goldenrod" if title == "goal" else "black")
+            axis.axis("off")
+        figure.suptitle(f"{int(mask.sum())} options", color=COLOURS[side], fontsize=TITLE_SIZE, fontweight="bold")
         figure.tight_layout()
         return figure
 

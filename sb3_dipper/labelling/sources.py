@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import copy
 import math
+import warnings
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dipper.common.preferences import PreferenceSource, TrajectoryPairs, progress_labels
+from sb3_dipper.common.preferences import MAX_NEW_PAIRS_PER_ROUND, PreferenceSource, TrajectoryPairs, progress_labels
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 
@@ -31,6 +32,14 @@ SPEC_HELP = (
     "the goal), 'noisy:P[:SEED]', 'people:DIRECTORY', 'mixed:DIRECTORY:FRACTION', or a dict with kind ('progress', "
     "'noisy', 'people' or 'mixed') and the source's keyword arguments"
 )
+
+# How fast a person labels on the labelling page: about ten seconds a pair (look at both pictures against the goal,
+# press a key), so six pairs a minute.
+PAIRS_A_PERSON_LABELS_A_MINUTE = 6
+# A run that asks people for more pairs than this is warned about at setup: at the pace above it is about three hours
+# of one person's labelling, more than a person gives a run in one sitting. Beyond it the queue grows faster than
+# anyone answers (one file a pair), and the label budget is not met.
+PEOPLE_PAIRS_WARNING_THRESHOLD = 1_000
 
 
 class NoisyLabeler(PreferenceSource):
@@ -256,12 +265,47 @@ def _is_json(value: Any) -> bool:
     return value is None or isinstance(value, (bool, int, float, str))
 
 
+def pairs_for_people(source: QueuedPreferenceSource, label_budget: int) -> int:
+    """The most pairs ``source`` queues for people over a run whose label budget is ``label_budget``.
+
+    The algorithm asks for its whole budget over the run (:func:`~sb3_dipper.common.preferences.pairs_due`); people get
+    ``person_fraction`` of it (all of it when ``to_person`` chooses), at most the source's own ``budget``.
+    """
+    share = 1.0 if source.to_person is not None else source.person_fraction
+    pairs = math.ceil(label_budget * share)
+    return pairs if source.budget is None else min(pairs, source.budget)
+
+
+def warn_if_beyond_people(source: QueuedPreferenceSource, label_budget: int) -> None:
+    """Warn when a run would ask people for more pairs than :data:`PEOPLE_PAIRS_WARNING_THRESHOLD`.
+
+    :param source: the algorithm's source of labels from people
+    :param label_budget: the algorithm's ``n_preference_pairs``
+    """
+    pairs = pairs_for_people(source, label_budget)
+    if pairs <= PEOPLE_PAIRS_WARNING_THRESHOLD:
+        return
+    pace = PAIRS_A_PERSON_LABELS_A_MINUTE
+    hours = pairs / pace / 60
+    an_hour = 60 * pace
+    warnings.warn(
+        f"n_preference_pairs={label_budget:,} asks people for up to {pairs:,} pairs over the run (label queue "
+        f"{source.directory}), about {hours:,.0f} hours of labelling at {pace} pairs a minute. Training queues them as "
+        f"it goes, up to {MAX_NEW_PAIRS_PER_ROUND} per training round, one file each, whether or not anyone labels "
+        "them. Size the label budget to the labelling people will do: n_preference_pairs = pairs a minute x minutes "
+        f"of labelling (n_preference_pairs={an_hour} for one person and one hour), divided by the people's share in "
+        "mixed mode; or cap the pairs sent to people and let the script label the rest: "
+        f"preference_source={{'kind': 'people', 'directory': {source.directory!r}, 'budget': {an_hour}}}."
+    )
+
+
 def preference_source_from(
     spec: PreferenceSourceSpec,
     script: PreferenceSource,
     env: VecEnv | None = None,
     subgoal_space: SubgoalSpace | None = None,
     seed: int | None = None,
+    label_budget: int | None = None,
 ) -> PreferenceSource:
     """The preference source an algorithm's ``preference_source`` describes, using ``script`` where it needs one.
 
@@ -273,6 +317,8 @@ def preference_source_from(
     :param env: the model's env, whose id and kwargs a label queue records for the page
     :param subgoal_space: the model's subgoal space (``None``: pairs of primitive actions), recorded for the page
     :param seed: the model's seed, for sources described without one
+    :param label_budget: the algorithm's ``n_preference_pairs``: a source that would ask people for far more pairs
+        than they can label is warned about (:func:`warn_if_beyond_people`)
     """
     if spec is None or spec == "primitive":
         return script
@@ -310,6 +356,8 @@ def preference_source_from(
         if isinstance(spec, QueuedPreferenceSource):
             spec.queue_info = queue_info(env, subgoal_space)
             spec._pending, spec._handed, spec._not_reused, spec._delivered, spec._queue = set(), set(), set(), [], None
+            if label_budget is not None:
+                warn_if_beyond_people(spec, label_budget)
     return spec
 
 

@@ -363,7 +363,9 @@ class PIPER(HIER):
         if self.env is not None:
             value_score = self._pair_value_score if self.value_reg_coef != 0.0 else None
             script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env), value_score)
-            self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
+            self._labeler = preference_source_from(
+                self.preference_source, script, self.env, self.subgoal_space, self.seed, self.n_preference_pairs
+            )
 
     def learn(
         self: SelfPIPER,
