@@ -1,6 +1,7 @@
 """Settings out of range, integer settings given as floats or strings, malformed goal spaces and non-finite terminal
 observations are refused at construction (or where the observation enters), with the parameter and its range named."""
 
+import copy
 import inspect
 import math
 import warnings
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3 import SAC
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_dipper import DAC, DIPPER, HIER, PIPER, RAPS
@@ -169,6 +171,40 @@ def test_float_settings_from_the_zoo_train_past_learning_starts():
     model = tiny_model(DIPPER, env, option_steps=5.0, n_preference_pairs=2e2, pairs_per_batch=8.0, trajectory_buffer_size=5e1)
     model.learn(80)
     assert model.num_timesteps == 80 and len(model.preferences) > 0
+
+
+# Every dict a constructor takes, with a content the algorithms that take it accept.
+DICT_SETTINGS = {
+    "policy_kwargs": {"net_arch": [16]},
+    "low_policy_kwargs": {"net_arch": [16]},
+    "replay_buffer_kwargs": {"n_sampled_goal": 2},
+    "high_replay_buffer_kwargs": {"n_sampled_goal": 2},
+    "low_level_kwargs": {"target_update_interval": 1},
+    "reward_model_kwargs": {"net_arch": [16]},
+    "discriminator_kwargs": {"net_arch": [16]},
+}
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_the_dicts_given_to_a_constructor_are_left_as_they_were(model_class):
+    names = [name for name in DICT_SETTINGS if name in constructor_parameters(model_class)]
+    given = {name: copy.deepcopy(DICT_SETTINGS[name]) for name in names}
+    assert "policy_kwargs" in given
+    model = any_tiny_model(model_class, short_maze(), **given)
+    model.learn(45)
+    assert given == {name: DICT_SETTINGS[name] for name in given}
+    # What the model keeps (and saves) is what it was given, not what its inner SACs added to their copies (DAC is an
+    # SB3 SAC itself, which keeps use_sde among its own policy_kwargs).
+    if not isinstance(model, SAC):
+        assert model.policy_kwargs == DICT_SETTINGS["policy_kwargs"]
+
+
+def test_one_policy_kwargs_dict_builds_hier_then_dipper(env):
+    """The reported case: HIER's higher SAC wrote use_sde into the dict, which DIPPER's policy then refused."""
+    policy_kwargs = {"net_arch": [16]}
+    tiny_model(HIER, env, policy_kwargs=policy_kwargs)
+    dipper = tiny_model(DIPPER, env, policy_kwargs=policy_kwargs)
+    assert policy_kwargs == {"net_arch": [16]} and dipper.policy_kwargs == policy_kwargs
 
 
 # ---------------------------------------------------------------------------------------------------- goal spaces

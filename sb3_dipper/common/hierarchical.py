@@ -205,7 +205,9 @@ class HierarchicalAlgorithm(CheckedLoading):
             policy,
             env,
             learning_rate,
-            policy_kwargs=policy_kwargs,
+            # Copies of every dict given: SB3's SACs add their own keys (use_sde) to the dicts they are handed, and a
+            # caller may pass the same dict to another model.
+            policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -224,10 +226,10 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.train_freq = train_freq
         self.gradient_steps = gradient_steps
         self.ent_coef = ent_coef
-        self.replay_buffer_kwargs = {} if replay_buffer_kwargs is None else replay_buffer_kwargs
+        self.replay_buffer_kwargs = dict(replay_buffer_kwargs or {})
         self.low_learning_rate = low_learning_rate
-        self.low_policy_kwargs = {} if low_policy_kwargs is None else low_policy_kwargs
-        self.low_level_kwargs = {} if low_level_kwargs is None else low_level_kwargs
+        self.low_policy_kwargs = dict(low_policy_kwargs or {})
+        self.low_level_kwargs = dict(low_level_kwargs or {})
         self.random_subgoal_prob = random_subgoal_prob
         self.demo_path = demo_path
         self.n_demos = n_demos
@@ -334,8 +336,8 @@ class HierarchicalAlgorithm(CheckedLoading):
             gradient_steps=self.gradient_steps,
             ent_coef=self.ent_coef,
             replay_buffer_class=HerReplayBuffer,
-            replay_buffer_kwargs=self.replay_buffer_kwargs,
-            policy_kwargs=self.low_policy_kwargs,
+            replay_buffer_kwargs=dict(self.replay_buffer_kwargs),
+            policy_kwargs=dict(self.low_policy_kwargs),
             device=self.device,
             demo_share=self.demo_share,
             bc_coef=self.bc_coef,

@@ -436,7 +436,8 @@ class DAC(CheckedLoading, SAC):
             gradient_steps,
             action_noise,
             replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
+            # Copies: SB3's SAC adds use_sde to its policy_kwargs, and a caller may pass the same dict to another model.
+            replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),
             optimize_memory_usage=optimize_memory_usage,
             ent_coef=ent_coef,
             target_update_interval=target_update_interval,
@@ -446,7 +447,7 @@ class DAC(CheckedLoading, SAC):
             use_sde_at_warmup=use_sde_at_warmup,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
+            policy_kwargs=dict(policy_kwargs or {}),
             verbose=verbose,
             seed=seed,
             device=device,

@@ -233,7 +233,8 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
             batch_size=pairs_per_batch,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
-            policy_kwargs=policy_kwargs,
+            # A copy: the model keeps what it was given, whatever the caller does with the dict afterwards.
+            policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,

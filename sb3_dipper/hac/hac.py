@@ -368,7 +368,8 @@ class HAC(HIER):
             gamma=self.high_gamma,
             ent_coef=self.high_ent_coef,
             replay_buffer_class=DictReplayBuffer,
-            policy_kwargs=self.policy_kwargs,
+            # A copy: SB3's SAC adds use_sde to the policy_kwargs it is handed.
+            policy_kwargs=dict(self.policy_kwargs),
             device=self.device,
             target_q_bounds=self.target_q_bounds,
         )

@@ -234,7 +234,7 @@ class HIER(HierarchicalAlgorithm):
         self.high_tau = high_tau
         self.high_ent_coef = high_ent_coef
         self.high_gradient_steps = high_gradient_steps
-        self.high_replay_buffer_kwargs = {} if high_replay_buffer_kwargs is None else high_replay_buffer_kwargs
+        self.high_replay_buffer_kwargs = dict(high_replay_buffer_kwargs or {})
         if _init_setup_model:
             self._setup_model()
 
@@ -252,8 +252,9 @@ class HIER(HierarchicalAlgorithm):
             gamma=self.high_gamma,
             ent_coef=self.high_ent_coef,
             replay_buffer_class=HerReplayBuffer,
-            replay_buffer_kwargs=self.high_replay_buffer_kwargs,
-            policy_kwargs=self.policy_kwargs,
+            # Copies: SB3's SAC adds use_sde to the policy_kwargs it is handed.
+            replay_buffer_kwargs=dict(self.high_replay_buffer_kwargs),
+            policy_kwargs=dict(self.policy_kwargs),
             device=self.device,
         )
         self.higher._vec_normalize_env = self._vec_normalize_env

@@ -336,7 +336,7 @@ class PIPER(HIER):
         self.reward_batch_size = reward_batch_size
         self.reward_gradient_steps = reward_gradient_steps
         self.reward_learning_rate = reward_learning_rate
-        self.reward_model_kwargs = {} if reward_model_kwargs is None else reward_model_kwargs
+        self.reward_model_kwargs = dict(reward_model_kwargs or {})
         self.high_her = high_her
         if _init_setup_model:
             self._setup_model()

@@ -245,7 +245,7 @@ class SAGA(HIER):
         self.adversarial_coef = adversarial_coef
         self.state_conditioned = state_conditioned
         self.discriminator_learning_rate = discriminator_learning_rate
-        self.discriminator_kwargs = {} if discriminator_kwargs is None else discriminator_kwargs
+        self.discriminator_kwargs = dict(discriminator_kwargs or {})
         if _init_setup_model:
             self._setup_model()
 
