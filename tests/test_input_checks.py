@@ -1,10 +1,15 @@
 """Settings out of range, integer settings given as floats or strings, malformed goal spaces and non-finite terminal
-observations are refused at construction (or where the observation enters), with the parameter and its range named."""
+observations are refused at construction and at load (or where the observation enters), with the parameter and its range named;
+the dicts a constructor is given are left as they were."""
 
 import copy
 import inspect
+import json
 import math
+import re
 import warnings
+import zipfile
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -140,6 +145,54 @@ def stored_setting(model, name: str):
     """A setting as the model keeps it (SB3 keeps some under a private name, ``train_freq`` as a ``TrainFreq``)."""
     value = getattr(model, name) if hasattr(model, name) else getattr(model, f"_{name}")
     return value.frequency if name == "train_freq" and not isinstance(value, int) else value
+
+
+@pytest.fixture(scope="module")
+def saved_models(env, tmp_path_factory):
+    """One saved tiny model of each algorithm, built from valid settings."""
+    folder = tmp_path_factory.mktemp("saved")
+    for model_class in ALL_ALGORITHMS:
+        any_tiny_model(model_class, env).save(folder / f"{model_class.__name__}.zip")
+    return folder
+
+
+def with_saved_setting(saved: Path, path: Path, name: str, value) -> Path:
+    """A copy of the model file ``saved`` at ``path`` whose data holds ``value`` for the setting ``name``."""
+    with zipfile.ZipFile(saved) as archive:
+        members = {member: archive.read(member) for member in archive.namelist()}
+    data = json.loads(members["data"])
+    key = name if name in data else f"_{name}"  # SB3 keeps some settings under a private name
+    assert key in data, name
+    data[key] = value
+    members["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(path, "w") as archive:
+        for member, content in members.items():
+            archive.writestr(member, content)
+    return path
+
+
+@pytest.mark.parametrize(("model_class", "name", "value", "message"), list(bad_setting_cases()))
+def test_a_setting_out_of_range_in_a_saved_file_is_refused_at_load(saved_models, tmp_path, model_class, name, value, message):
+    """load runs the constructor's checks on the settings it reads, and names the file."""
+    path = with_saved_setting(saved_models / f"{model_class.__name__}.zip", tmp_path / "edited.zip", name, value)
+    with pytest.raises(ValueError, match=f"{re.escape(str(path))} holds a setting .*: {name} {message}"):
+        model_class.load(path)
+
+
+def test_dipper_load_refuses_a_bad_beta_or_planning_mode_in_the_file_or_given_to_it(saved_models, tmp_path):
+    """The reported cases: beta = -1 and planning = "bogus" in a zip's data went through load, predict and learn."""
+    saved = saved_models / "DIPPER.zip"
+    beta = with_saved_setting(saved, tmp_path / "beta.zip", "beta", -1.0)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(beta))} holds .*: beta must be a finite number > 0, got -1.0"):
+        DIPPER.load(beta, env=short_maze())
+    planning = with_saved_setting(saved, tmp_path / "planning.zip", "planning", "bogus")
+    with pytest.raises(ValueError, match=r"Unknown planning 'bogus': choose one of \('off', 'subgoal', 'waypoint'\)"):
+        DIPPER.load(planning)
+    # A value given to load is checked too, and said to come from there.
+    with pytest.raises(ValueError, match=rf"DIPPER.load\({re.escape(str(saved))}, beta=-1.0\): beta must be"):
+        DIPPER.load(saved, beta=-1.0)
+    # Settings given to load as the zoo's YAML gives them are converted as the constructor converts them.
+    assert DIPPER.load(saved, pairs_per_batch="8.0").pairs_per_batch == 8
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)

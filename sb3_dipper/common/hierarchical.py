@@ -57,7 +57,13 @@ from sb3_dipper.common.low_level import (
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
-from sb3_dipper.common.validation import as_float, as_int, as_optional_int, check_goal_observation_space
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_float,
+    as_int,
+    as_optional_int,
+    check_goal_observation_space,
+)
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
 
@@ -179,28 +185,6 @@ class HierarchicalAlgorithm(CheckedLoading):
         if env is not None:
             env = maybe_make_env(env, verbose)
             check_goal_observation_space(env.observation_space, algorithm)
-        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
-        option_steps = as_int("option_steps", option_steps, 1)
-        buffer_size = as_int("buffer_size", buffer_size, 1)
-        learning_starts = as_int("learning_starts", learning_starts, 0)
-        batch_size = as_int("batch_size", batch_size, 1)
-        train_freq = as_int("train_freq", train_freq, 1, "the lower level trains every train_freq primitive steps")
-        gradient_steps = as_int("gradient_steps", gradient_steps, 0)
-        n_demos = as_int("n_demos", n_demos, 1)
-        max_episode_steps = as_optional_int("max_episode_steps", max_episode_steps, 1, "None reads the env's time limit")
-        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
-        tau = as_float("tau", tau, 0.0, 1.0, low_open=True)
-        gamma = as_float("gamma", gamma, 0.0, 1.0, low_open=True)
-        random_subgoal_prob = as_float("random_subgoal_prob", random_subgoal_prob, 0.0, 1.0)
-        demo_share = as_float("demo_share", demo_share, 0.0, 1.0)
-        bc_coef = as_float("bc_coef", bc_coef, 0.0, reason="it weighs a loss")
-        rl_coef = as_float("rl_coef", rl_coef, 0.0, reason="it weighs a loss")
-        greedy_episode_prob = as_float("greedy_episode_prob", greedy_episode_prob, 0.0, 1.0)
-        if normalize_from_demos and demo_path is None:
-            raise ValueError(
-                "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
-                "(an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or set normalize_from_demos=False"
-            )
         super().__init__(
             policy,
             env,
@@ -246,7 +230,35 @@ class HierarchicalAlgorithm(CheckedLoading):
 
     # ---------------------------------------------------------------------------------------------------- set-up
 
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        self.option_steps = as_int("option_steps", self.option_steps, 1)
+        self.buffer_size = as_int("buffer_size", self.buffer_size, 1)
+        self.learning_starts = as_int("learning_starts", self.learning_starts, 0)
+        self.batch_size = as_int("batch_size", self.batch_size, 1)
+        self.train_freq = as_int("train_freq", self.train_freq, 1, "the lower level trains every train_freq primitive steps")
+        self.gradient_steps = as_int("gradient_steps", self.gradient_steps, 0)
+        self.n_demos = as_int("n_demos", self.n_demos, 1)
+        self.max_episode_steps = as_optional_int(
+            "max_episode_steps", self.max_episode_steps, 1, "None reads the env's time limit"
+        )
+        self.tau = as_float("tau", self.tau, 0.0, 1.0, low_open=True)
+        self.gamma = as_float("gamma", self.gamma, 0.0, 1.0, low_open=True)
+        self.random_subgoal_prob = as_float("random_subgoal_prob", self.random_subgoal_prob, 0.0, 1.0)
+        self.demo_share = as_float("demo_share", self.demo_share, 0.0, 1.0)
+        self.bc_coef = as_float("bc_coef", self.bc_coef, 0.0, reason="it weighs a loss")
+        self.rl_coef = as_float("rl_coef", self.rl_coef, 0.0, reason="it weighs a loss")
+        self.greedy_episode_prob = as_float("greedy_episode_prob", self.greedy_episode_prob, 0.0, 1.0)
+        if self.normalize_from_demos and self.demo_path is None:
+            raise InvalidSetting(
+                "normalize_from_demos",
+                "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
+                "(an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or set normalize_from_demos=False",
+            )
+
     def _setup_model(self) -> None:
+        self._check_settings()
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         if self.env is not None:

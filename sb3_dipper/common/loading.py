@@ -7,6 +7,9 @@
   a file without ``saved_by`` (SB3's ``SAC``, sb3-contrib's ``TQC``, another library's class) is refused too, naming
   the algorithm whose policy it holds (:func:`saving_algorithms`), unless it holds the loading class's own settings
   (a file of sb3-dipper 0.1.0, which wrote no ``saved_by``);
+* checks the settings of a loaded model as its constructor checks them (:meth:`CheckedLoading._check_settings`, run
+  by ``_setup_model``, which both call): a value out of range in the file (``beta = -1``, ``planning = "bogus"``) or
+  given to ``load`` is refused with an error that names the parameter and the file;
 * refuses an env whose time limit differs from the episode length the model's buffers were sized for
   (``max_episode_steps``), at ``load`` and at ``set_env``: trajectories would be cut into pieces without a word.
   ``load(path, env=env, max_episode_steps=N)`` rebuilds the model for the env's N-step episodes;
@@ -34,7 +37,7 @@ from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.files import save_model_atomically
-from sb3_dipper.common.validation import check_keyword_arguments, constructor_parameters
+from sb3_dipper.common.validation import InvalidSetting, as_int, check_keyword_arguments, constructor_parameters
 
 SelfCheckedLoading = TypeVar("SelfCheckedLoading", bound="CheckedLoading")
 
@@ -150,6 +153,16 @@ def _pickled_class_name(serialized: dict[str, Any]) -> str | None:
     return f"{module}.{name}" if module == serialized.get("__module__") else None
 
 
+def _invalid_setting_message(algorithm: str, path: Any, error: InvalidSetting, kwargs: dict[str, Any]) -> str:
+    """Where the refused setting of a loaded model came from (the file, or ``load``'s keywords) and how to fix it."""
+    if error.setting in kwargs:
+        return f"{algorithm}.load({path}, {error.setting}={kwargs[error.setting]!r}): {error}"
+    return (
+        f"{path} holds a setting {algorithm}'s constructor refuses: {error}. Was the file edited? Load it with a valid "
+        f"value, {algorithm}.load(path, {error.setting}=...), and save it again, or load another copy of the model."
+    )
+
+
 def env_time_limit(env: VecEnv) -> int | None:
     """The env's time limit (``spec.max_episode_steps``), ``None`` if it has none."""
     spec = env.get_attr("spec", indices=[0])[0]
@@ -194,6 +207,17 @@ class CheckedLoading(BaseAlgorithm):
         check_keyword_arguments(cls, kwargs)
         return super().__new__(cls)
 
+    def _check_settings(self) -> None:
+        """Check the model's settings and convert them to what training needs (``"5e4"`` becomes ``50000``), raising
+        :class:`~sb3_dipper.common.validation.InvalidSetting` for a value out of range.
+
+        Each algorithm extends it with its own settings (calling ``super()``), and calls it first thing in
+        ``_setup_model``: the constructor builds its model there, and so does ``load``, after it has set the
+        settings read from the file (and those given to ``load``), so the one set of checks covers both.
+        """
+        # SB3's BaseAlgorithm keeps this setting under a private name.
+        self._stats_window_size = as_int("stats_window_size", self._stats_window_size, 1)
+
     def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
         """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly.
 
@@ -214,8 +238,9 @@ class CheckedLoading(BaseAlgorithm):
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfCheckedLoading:
-        """SB3's ``load``; refuses a file another algorithm saved, and an env whose time limit is not the model's
-        episode length (pass ``max_episode_steps=`` the env's limit to rebuild the model for the env's episodes).
+        """SB3's ``load``; refuses a file another algorithm saved, a setting the constructor would refuse (from the file or
+        given here), and an env whose time limit is not the model's episode length (pass ``max_episode_steps=`` the
+        env's limit to rebuild the model for the env's episodes).
         """
         fields = saved_data_fields(path)
         saved_by = fields.get("saved_by")
@@ -233,7 +258,10 @@ class CheckedLoading(BaseAlgorithm):
                 cls.__name__,
                 f"rebuild it for the env's episodes with {cls.__name__}.load(path, env=env, max_episode_steps={{limit}})",
             )
-        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
+        try:
+            return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
+        except InvalidSetting as error:
+            raise InvalidSetting(error.setting, _invalid_setting_message(cls.__name__, path, error, kwargs)) from None
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""

@@ -45,7 +45,14 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import as_float, as_int, as_optional_float, sparse_goal_reached_fn
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_choice,
+    as_float,
+    as_int,
+    as_optional_float,
+    sparse_goal_reached_fn,
+)
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
 from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
 
@@ -241,24 +248,6 @@ class DIPPER(HierarchicalAlgorithm):
             seed=seed,
             device=device,
         )
-        if value_reg not in VALUE_REGULARIZERS:
-            raise ValueError(f"Unknown value_reg {value_reg!r}: choose one of {VALUE_REGULARIZERS}")
-        if not 0.0 <= hindsight_goal_prob <= 1.0:
-            raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
-        beta = as_float("beta", beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected trajectories")
-        value_reg_coef = as_float("value_reg_coef", value_reg_coef, 0.0, reason="0 turns the value term off")
-        value_score_coef = as_float("value_score_coef", value_score_coef, 0.0, reason="0 turns the value score off")
-        value_steps = as_int("value_steps", value_steps, 0)
-        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
-        pairs_per_batch = as_int("pairs_per_batch", pairs_per_batch, 1)
-        high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
-        nll_coef = as_float("nll_coef", nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
-        planning_lookahead = as_int("planning_lookahead", planning_lookahead, 1)
-        planning_resolution = as_optional_float("planning_resolution", planning_resolution, 0.0, low_open=True)
-        planning_value_threshold = as_optional_float("planning_value_threshold", planning_value_threshold)
-        trajectory_buffer_size = as_int(
-            "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
-        )
         self.beta = beta
         self.value_reg_coef = value_reg_coef
         self.value_steps = value_steps
@@ -271,13 +260,6 @@ class DIPPER(HierarchicalAlgorithm):
         self.nll_coef = nll_coef
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
-        if planning not in PLANNING_MODES:
-            raise ValueError(f"Unknown planning {planning!r}: choose one of {PLANNING_MODES}")
-        if not plan_in_predict and planning != "subgoal":
-            raise ValueError(
-                f"plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in training "
-                f"only), got planning={planning!r}"
-            )
         self.planning = planning
         self.plan_in_predict = plan_in_predict
         self.planning_lookahead = planning_lookahead
@@ -289,6 +271,32 @@ class DIPPER(HierarchicalAlgorithm):
         self.preference_source = preference_source
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.value_reg = as_choice("value_reg", self.value_reg, VALUE_REGULARIZERS)
+        self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
+        self.beta = as_float("beta", self.beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected trajectories")
+        self.value_reg_coef = as_float("value_reg_coef", self.value_reg_coef, 0.0, reason="0 turns the value term off")
+        self.value_score_coef = as_float("value_score_coef", self.value_score_coef, 0.0, reason="0 turns the value score off")
+        self.value_steps = as_int("value_steps", self.value_steps, 0)
+        self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
+        self.pairs_per_batch = as_int("pairs_per_batch", self.pairs_per_batch, 1)
+        self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
+        self.nll_coef = as_float("nll_coef", self.nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
+        self.planning_lookahead = as_int("planning_lookahead", self.planning_lookahead, 1)
+        self.planning_resolution = as_optional_float("planning_resolution", self.planning_resolution, 0.0, low_open=True)
+        self.planning_value_threshold = as_optional_float("planning_value_threshold", self.planning_value_threshold)
+        self.trajectory_buffer_size = as_int(
+            "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
+        )
+        self.planning = as_choice("planning", self.planning, PLANNING_MODES)
+        if not self.plan_in_predict and self.planning != "subgoal":
+            raise InvalidSetting(
+                "plan_in_predict",
+                "plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in "
+                f"training only), got planning={self.planning!r}",
+            )
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None

@@ -53,7 +53,7 @@ from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_int, as_optional_int, sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_float, as_int, sparse_goal_reached_fn
 from sb3_dipper.hac.hindsight import (
     future_goal_pairs,
     goal_rewards,
@@ -333,10 +333,6 @@ class HAC(HIER):
             device=device,
             _init_setup_model=False,
         )
-        if not 0.0 <= subgoal_test_prob <= 1.0:
-            raise ValueError(f"subgoal_test_prob must be in [0, 1], got {subgoal_test_prob}")
-        n_hindsight_goals = as_optional_int("n_hindsight_goals", n_hindsight_goals, 0)
-        greedy_episode_interval = as_int("greedy_episode_interval", greedy_episode_interval, 1)
         self.subgoal_test_prob = subgoal_test_prob
         self.paper_compat = paper_compat
         self.n_hindsight_goals = n_hindsight_goals if n_hindsight_goals is not None else (4 if paper_compat else 3)
@@ -345,6 +341,12 @@ class HAC(HIER):
             self._setup_model()
 
     # ---------------------------------------------------------------------------------------------------- set-up
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.subgoal_test_prob = as_float("subgoal_test_prob", self.subgoal_test_prob, 0.0, 1.0)
+        self.n_hindsight_goals = as_int("n_hindsight_goals", self.n_hindsight_goals, 0)
+        self.greedy_episode_interval = as_int("greedy_episode_interval", self.greedy_episode_interval, 1)
 
     @property
     def target_q_bounds(self) -> tuple[float, float]:

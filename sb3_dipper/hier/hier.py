@@ -223,11 +223,6 @@ class HIER(HierarchicalAlgorithm):
             seed=seed,
             device=device,
         )
-        high_buffer_size = as_int("high_buffer_size", high_buffer_size, 1)
-        high_batch_size = as_int("high_batch_size", high_batch_size, 1)
-        high_gamma = as_float("high_gamma", high_gamma, 0.0, 1.0, low_open=True)
-        high_tau = as_float("high_tau", high_tau, 0.0, 1.0, low_open=True)
-        high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
         self.high_buffer_size = high_buffer_size
         self.high_batch_size = high_batch_size
         self.high_gamma = high_gamma
@@ -237,6 +232,14 @@ class HIER(HierarchicalAlgorithm):
         self.high_replay_buffer_kwargs = dict(high_replay_buffer_kwargs or {})
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.high_buffer_size = as_int("high_buffer_size", self.high_buffer_size, 1)
+        self.high_batch_size = as_int("high_batch_size", self.high_batch_size, 1)
+        self.high_gamma = as_float("high_gamma", self.high_gamma, 0.0, 1.0, low_open=True)
+        self.high_tau = as_float("high_tau", self.high_tau, 0.0, 1.0, low_open=True)
+        self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None

@@ -319,15 +319,6 @@ class PIPER(HIER):
             device=device,
             _init_setup_model=False,
         )
-        if not 0.0 <= hindsight_goal_prob <= 1.0:
-            raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
-        reward_batch_size = as_int("reward_batch_size", reward_batch_size, 1, "pairs per reward-model update")
-        reward_gradient_steps = as_int("reward_gradient_steps", reward_gradient_steps, 0)
-        value_reg_coef = as_float("value_reg_coef", value_reg_coef, 0.0, reason="0 turns the value score off")
-        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
-        trajectory_buffer_size = as_int(
-            "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
-        )
         self.value_reg_coef = value_reg_coef
         self.n_preference_pairs = n_preference_pairs
         self.hindsight_goal_prob = hindsight_goal_prob
@@ -340,6 +331,17 @@ class PIPER(HIER):
         self.high_her = high_her
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
+        self.reward_batch_size = as_int("reward_batch_size", self.reward_batch_size, 1, "pairs per reward-model update")
+        self.reward_gradient_steps = as_int("reward_gradient_steps", self.reward_gradient_steps, 0)
+        self.value_reg_coef = as_float("value_reg_coef", self.value_reg_coef, 0.0, reason="0 turns the value score off")
+        self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
+        self.trajectory_buffer_size = as_int(
+            "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
+        )
 
     def _setup_high_level(self) -> None:
         super()._setup_high_level()

@@ -241,13 +241,18 @@ class SAGA(HIER):
             device=device,
             _init_setup_model=False,
         )
-        adversarial_coef = as_float("adversarial_coef", adversarial_coef, 0.0, reason="it weighs a loss; 0 turns it off")
         self.adversarial_coef = adversarial_coef
         self.state_conditioned = state_conditioned
         self.discriminator_learning_rate = discriminator_learning_rate
         self.discriminator_kwargs = dict(discriminator_kwargs or {})
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.adversarial_coef = as_float(
+            "adversarial_coef", self.adversarial_coef, 0.0, reason="it weighs a loss; 0 turns it off"
+        )
 
     def _setup_high_level(self) -> None:
         super()._setup_high_level()
