@@ -5,6 +5,7 @@ and running both levels of a hierarchy without the algorithm (``export_policy``)
 import base64
 import json
 import pickle
+import re
 import warnings
 import zipfile
 from pathlib import Path
@@ -209,6 +210,30 @@ def test_an_env_with_another_time_limit_is_refused_unless_max_episode_steps_says
         model.set_env(maze_with_time_limit(30))
     rebuilt = model_class.load(tmp_path / "model", env=maze_with_time_limit(30), max_episode_steps=30)
     assert rebuilt.max_episode_steps == 30
+
+
+# (saved, given to load): a learned coefficient for a fixed one, the other way round, and another fixed value, which
+# the saved tensor would replace without a word.
+REFUSED_ENTROPY_COEFFICIENTS = [("auto", 0.05), (0.05, "auto"), (0.05, 0.1)]
+
+
+@pytest.mark.parametrize(("model_class", "name"), [(HIER, "ent_coef"), (HIER, "high_ent_coef"), (DAC, "ent_coef")])
+@pytest.mark.parametrize(("saved", "given"), REFUSED_ENTROPY_COEFFICIENTS)
+def test_an_entropy_coefficient_load_cannot_restore_is_refused(model_class, name, saved, given, tmp_path, maze_env):
+    """The reported case: resuming with -params ent_coef:0.05 failed inside SB3 with "'NoneType' object has no attribute
+    'load_state_dict'" (the saved model learned its coefficient)."""
+    any_tiny_model(model_class, maze_env, **{name: saved}).save(tmp_path / "model.zip")
+    message = rf"\({re.escape(str(tmp_path / 'model.zip'))}, ...\): the saved model .* \({name}={saved!r}\).*Leave {name} out"
+    with pytest.raises(ValueError, match=message):
+        model_class.load(tmp_path / "model.zip", env=maze_env, **{name: given})
+
+
+@pytest.mark.parametrize(("saved", "given"), [("auto", "auto_0.5"), (0.05, "0.05")])
+def test_an_entropy_coefficient_load_restores_as_given_is_accepted(saved, given, tmp_path, maze_env):
+    tiny_model(HIER, maze_env, ent_coef=saved).save(tmp_path / "model.zip")
+    loaded = HIER.load(tmp_path / "model.zip", env=maze_env, ent_coef=given)
+    loaded.learn(45)
+    assert (loaded.lower.ent_coef_optimizer is None) == (saved == 0.05)
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)

@@ -163,6 +163,33 @@ def _invalid_setting_message(algorithm: str, path: Any, error: InvalidSetting, k
     )
 
 
+def check_entropy_coefficient(name: str, saved: Any, given: Any, where: str) -> None:
+    """Refuse an entropy coefficient given to ``load`` that the saved model's state would override or could not hold.
+
+    SB3's SAC learns its coefficient (``"auto"``, ``"auto_<initial value>"``) with an optimizer of its own, or keeps a
+    fixed one as a tensor; ``load`` restores either from the file. A learned one given for a fixed one (or the other
+    way round) finds no optimizer state to restore (SB3 fails with ``AttributeError: 'NoneType' object has no attribute
+    'load_state_dict'``), and another fixed value would be replaced by the saved one without a word. A learned one for
+    a learned one is kept: the file restores the learned value, whatever the initial one.
+
+    :param name: the setting (``ent_coef``, ``high_ent_coef``)
+    :param saved: its value in the file
+    :param given: the value given to ``load``
+    :param where: the call, for the message
+    """
+    saved_learns, given_learns = (str(value).startswith("auto") for value in (saved, given))
+    if saved_learns and given_learns:
+        return
+    if not saved_learns and not given_learns and float(saved) == float(given):
+        return
+    kind = "learns its entropy coefficient" if saved_learns else "keeps a fixed entropy coefficient"
+    raise ValueError(
+        f"{where}: the saved model {kind} ({name}={saved!r}), which the file restores; {name}={given!r} cannot take "
+        f"its place when loading. Leave {name} out to go on with the saved one, or train a new model with "
+        f"{name}={given!r}."
+    )
+
+
 def env_time_limit(env: VecEnv) -> int | None:
     """The env's time limit (``spec.max_episode_steps``), ``None`` if it has none."""
     spec = env.get_attr("spec", indices=[0])[0]
@@ -250,6 +277,9 @@ class CheckedLoading(BaseAlgorithm):
         # parameter, with an AssertionError or a KeyError.
         if saved_by is None and fields and (error := _other_librarys_file(cls, path, fields)) is not None:
             raise error
+        for name in constructor_parameters(cls):
+            if name.endswith("ent_coef") and name in kwargs and name in fields:
+                check_entropy_coefficient(name, fields[name], kwargs[name], f"{cls.__name__}.load({path}, ...)")
         if env is not None:
             env = cls._wrap_env(env, int(fields.get("verbose", 0)))
             check_time_limit(
