@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+import torch as th
 from gymnasium import spaces
 from stable_baselines3.common import save_util
 
@@ -197,6 +198,28 @@ def test_a_single_file_checkpoint_round_trips_through_a_stream(model_class, kwar
     resumed.load_replay_buffer(stream)
     assert resumed.replay_buffer.pos == model.replay_buffer.pos > 0
     np.testing.assert_array_equal(resumed.replay_buffer.actions, model.replay_buffer.actions)
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, RAPS, DAC, DPOFlat])
+def test_a_model_file_with_nan_weights_is_refused_at_load_naming_the_tensor(model_class, tmp_path):
+    """Saved after its training diverged, a model failed only at its first prediction, inside torch's Normal."""
+    model = any_tiny_model(model_class, short_maze())
+    name, weight = next(iter(model.policy.named_parameters()))
+    with th.no_grad():
+        weight.view(-1)[0] = float("nan")
+    model.save(tmp_path / "model.zip")
+    path = re.escape(str(tmp_path / "model.zip"))
+    with pytest.raises(ValueError, match=rf"{path} holds NaN or infinite values in \S*policy\.{re.escape(name)}: .*earlier"):
+        model_class.load(tmp_path / "model.zip")
+
+
+def test_an_infinite_torch_variable_is_named_too(tmp_path):
+    model = tiny_model(DIPPER, short_maze())
+    with th.no_grad():
+        model.lower.log_ent_coef.fill_(float("inf"))
+    model.save(tmp_path / "model.zip")
+    with pytest.raises(ValueError, match=r"holds NaN or infinite values in lower\.log_ent_coef: "):
+        DIPPER.load(tmp_path / "model.zip", env=short_maze())
 
 
 # ---------------------------------------------------------------------------------------------------- demonstrations

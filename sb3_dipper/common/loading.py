@@ -10,6 +10,10 @@
 * checks the settings of a loaded model as its constructor checks them (:meth:`CheckedLoading._check_settings`, run
   by ``_setup_model``, which both call): a value out of range in the file (``beta = -1``, ``planning = "bogus"``) or
   given to ``load`` is refused with an error that names the parameter and the file;
+* refuses a file whose networks, optimizer states or torch variables hold NaN or infinite values, naming the tensor
+  (a model saved after its training diverged would fail only at its first prediction, inside torch);
+* refuses an entropy coefficient given to ``load`` that the saved model's state cannot take
+  (:func:`check_entropy_coefficient`);
 * refuses an env whose time limit differs from the episode length the model's buffers were sized for
   (``max_episode_steps``), at ``load`` and at ``set_env``: trajectories would be cut into pieces without a word.
   ``load(path, env=env, max_episode_steps=N)`` rebuilds the model for the env's N-step episodes;
@@ -163,6 +167,31 @@ def _invalid_setting_message(algorithm: str, path: Any, error: InvalidSetting, k
     )
 
 
+def first_non_finite_tensor(model: BaseAlgorithm) -> str | None:
+    """The name of the first tensor ``save`` writes (networks, optimizer states, torch variables) that holds NaN or
+    infinite values, such as ``lower.policy.actor.mu.weight``; ``None`` if every one is finite."""
+    state_dicts, variables = model._get_torch_save_params()
+    named = [(name, recursive_getattr(model, name).state_dict()) for name in state_dicts]
+    named += [(name, recursive_getattr(model, name)) for name in variables]
+    for name, value in named:
+        for tensor_name, tensor in _named_tensors(name, value):
+            if tensor.is_floating_point() and not bool(th.isfinite(tensor).all()):
+                return tensor_name
+    return None
+
+
+def _named_tensors(name: str, value: Any) -> list[tuple[str, th.Tensor]]:
+    """The tensors in ``value`` (a tensor, or dicts and lists of them: state dicts, optimizer states), each named by
+    its path from ``name``."""
+    if isinstance(value, th.Tensor):
+        return [(name, value)]
+    if isinstance(value, dict):
+        return [found for key, item in value.items() for found in _named_tensors(f"{name}.{key}", item)]
+    if isinstance(value, (list, tuple)):
+        return [found for index, item in enumerate(value) for found in _named_tensors(f"{name}.{index}", item)]
+    return []
+
+
 def check_entropy_coefficient(name: str, saved: Any, given: Any, where: str) -> None:
     """Refuse an entropy coefficient given to ``load`` that the saved model's state would override or could not hold.
 
@@ -289,9 +318,17 @@ class CheckedLoading(BaseAlgorithm):
                 f"rebuild it for the env's episodes with {cls.__name__}.load(path, env=env, max_episode_steps={{limit}})",
             )
         try:
-            return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
+            model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
         except InvalidSetting as error:
             raise InvalidSetting(error.setting, _invalid_setting_message(cls.__name__, path, error, kwargs)) from None
+        # Torch would only fail later, inside Normal(...) at the first prediction, naming neither file nor tensor.
+        damaged = first_non_finite_tensor(model)
+        if damaged is not None:
+            raise ValueError(
+                f"{path} holds NaN or infinite values in {damaged}: the model was saved after its training diverged, "
+                "or the file is damaged. Load an earlier checkpoint of the run."
+            )
+        return model  # type: ignore[return-value]
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""
