@@ -13,7 +13,9 @@ callbacks' ``on_step`` runs once per primitive step, ``rollout/success_rate`` co
 from __future__ import annotations
 
 import copy
+import io
 import math
+import pathlib
 import sys
 import time
 import warnings
@@ -139,6 +141,9 @@ class HierarchicalAlgorithm(CheckedLoading):
     # Models saved before this setting existed load with its default.
     normalize_from_demos: bool = False
     greedy_episode_prob: float = 0.0
+    # Whether the subgoal space is the one the env declared (no subgoal_space given): then an env the model is loaded
+    # onto, or given with set_env, must declare the same. Models saved before this was recorded are checked too.
+    subgoal_space_from_env: bool = True
 
     def __init__(
         self,
@@ -202,6 +207,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         )
         self.option_steps = option_steps
         self.subgoal_space = subgoal_space
+        self.subgoal_space_from_env = subgoal_space is None
         self.buffer_size = buffer_size
         self.learning_starts = learning_starts
         self.batch_size = batch_size
@@ -227,6 +233,23 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.low_normalizer: SubgoalNormalizer | None = None
         self._low_steps_since_train = 0
         self._rng = np.random.default_rng(seed)
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfHierarchicalAlgorithm],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfHierarchicalAlgorithm:
+        """:meth:`CheckedLoading.load`; ``subgoal_space=`` replaces the saved subgoal space with the one given, which,
+        as one given to the constructor, no env's declared space has to match."""
+        if kwargs.get("subgoal_space") is not None:
+            kwargs["subgoal_space_from_env"] = False
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
 
     # ---------------------------------------------------------------------------------------------------- set-up
 
@@ -262,6 +285,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         if self.env is not None:
+            self._check_env_subgoal_space(self.env)
             self.subgoal_space = resolve_subgoal_space(self.env, self.subgoal_space)
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
             self._warn_if_options_outlast_episodes()
@@ -281,6 +305,33 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.option_env = OptionVecEnv(
                 self.env, self.subgoal_space, self.option_steps, self.low_level, sink=self._on_primitive_step
             )
+
+    def _check_env_subgoal_space(self, env: VecEnv) -> None:
+        """Refuse an env that declares another subgoal space than the one the model took from its env.
+
+        A model's higher level proposes subgoals in its own box; on an env with another one (a model of a larger maze
+        on a smaller maze with the same observation and action spaces) it would train and act in the old box without
+        a word. A box given by the user (``subgoal_space=``) is the user's choice and is not checked.
+        """
+        if self.subgoal_space is None or not self.subgoal_space_from_env:
+            return
+        declared = self._env_declared_subgoal_space()
+        env_space = resolve_subgoal_space(env)
+        if declared.same_as(env_space):
+            return
+        algorithm = type(self).__name__
+        raise ValueError(
+            f"The env declares the subgoal space {env_space.describe()}, but this {algorithm} model's is "
+            f"{declared.describe()} (the space of the env it was built on): its higher level would propose subgoals "
+            f"in that box. Use the model on an env with its subgoal space, or choose the box on purpose when loading: "
+            f"{algorithm}.load(path, env=env, subgoal_space=...) keeps the space given (the env's own is "
+            "sb3_dipper.common.subgoals.resolve_subgoal_space(env))."
+        )
+
+    def _env_declared_subgoal_space(self) -> SubgoalSpace:
+        """The part of the model's subgoal space that an env declares, to compare with another env's: all of it."""
+        assert self.subgoal_space is not None
+        return self.subgoal_space
 
     def _warn_if_options_outlast_episodes(self) -> None:
         """Allowed but rarely meant: every option is cut short by the episode's end, so the higher level acts once per
@@ -674,8 +725,11 @@ class HierarchicalAlgorithm(CheckedLoading):
         ``load_replay_buffer`` after ``set_env``). A model that has an env keeps its replay data, as in SB3, and its
         option layer moves to ``env``.
         """
-        if self.normalize_from_demos:  # refused before anything changes
+        # Refused before anything changes.
+        if self.normalize_from_demos:
             self._normalizable(unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None)
+        env = self._wrap_env(env, self.verbose)
+        self._check_env_subgoal_space(env)
         super().set_env(env, force_reset)
         if self.option_env is None:
             self._rebuild_keeping_parameters()
