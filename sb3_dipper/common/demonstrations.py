@@ -222,13 +222,20 @@ def register_default_demonstrations(env_id: str, make: Callable[[int, float], De
     _DEFAULT_DEMONSTRATIONS[env_id] = make
 
 
-def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
-    """The demonstrations ``demo_path`` names for ``env``: an npz file or a Minari dataset directory
-    (:func:`load_demonstrations`); ``"auto"``, the single default demonstration registered for the env's id (the
-    paper's one demonstration); or ``"auto:dart<N>"``, N DART episodes of the same expert (its actions executed with
-    Gaussian noise of standard deviation ``DART_ACTION_NOISE``, beyond the paper; see :func:`collect_demonstrations`)."""
+def demonstrations_for(demo_path: str, env: VecEnv, n_demos: int | None = None) -> Demonstrations:
+    """The first ``n_demos`` episodes of the demonstrations ``demo_path`` names for ``env``: an npz file or a Minari
+    dataset directory (:func:`load_demonstrations`); ``"auto"``, the single default demonstration registered for the
+    env's id (the paper's one demonstration); or ``"auto:dart<N>"``, N DART episodes of the same expert (its actions
+    executed with Gaussian noise of standard deviation ``DART_ACTION_NOISE``, beyond the paper; see
+    :func:`collect_demonstrations`).
+
+    :param demo_path: the demonstrations
+    :param env: the env they are for
+    :param n_demos: how many episodes to use, from the first (``None``: all N of ``"auto:dart<N>"``, the one of
+        ``"auto"``, the first episode of a file or dataset)
+    """
     if demo_path != "auto" and not demo_path.startswith("auto:"):
-        return load_demonstrations(demo_path)
+        return load_demonstrations(demo_path).first_episodes(1 if n_demos is None else n_demos)
     dart = _DART_SPEC.fullmatch(demo_path)
     if demo_path != "auto" and dart is None:
         raise ValueError(
@@ -243,8 +250,20 @@ def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
             f"demo_path={demo_path!r}: no scripted demonstrations for {spec.id!r} (tasks with them: "
             f"{sorted(_DEFAULT_DEMONSTRATIONS)}); pass a demonstration file (sb3-dipper-demos) instead"
         )
-    make = _DEFAULT_DEMONSTRATIONS[spec.id]
-    return make(1, 0.0) if dart is None else make(int(dart.group(1)), DART_ACTION_NOISE)
+    n_episodes = 1 if dart is None else int(dart.group(1))
+    if n_demos is not None and n_demos > n_episodes:
+        more = (
+            f"demo_path='auto:dart{n_demos}' (that many DART episodes of the same expert)"
+            if dart is not None
+            else f"demo_path='auto:dart{n_demos}' (DART episodes of the same expert) or a file of {n_demos} episodes "
+            f"(sb3-dipper-demos --env {spec.id} --n-episodes {n_demos})"
+        )
+        raise ValueError(
+            f"n_demos={n_demos} asks for more episodes than demo_path={demo_path!r} makes ({n_episodes}): for more, "
+            f"use {more}; or use at most n_demos={n_episodes} (leaving n_demos out uses all {n_episodes})"
+        )
+    demonstrations = _DEFAULT_DEMONSTRATIONS[spec.id](n_episodes, 0.0 if dart is None else DART_ACTION_NOISE)
+    return demonstrations.first_episodes(n_episodes if n_demos is None else n_demos)
 
 
 def normalize_like_demonstrations(

@@ -109,7 +109,8 @@ class HierarchicalAlgorithm(CheckedLoading):
         :mod:`sb3_dipper.common.imitation`): an npz file, a Minari dataset directory, ``"auto"`` for the task's
         single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of its scripted expert (beyond
         the paper; :func:`~sb3_dipper.common.demonstrations.demonstrations_for`); ``None``: no cloning
-    :param n_demos: how many demonstration episodes to use
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -166,7 +167,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         low_level_kwargs: dict[str, Any] | None = None,
         random_subgoal_prob: float = 0.0,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -262,7 +263,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.batch_size = as_int("batch_size", self.batch_size, 1)
         self.train_freq = as_int("train_freq", self.train_freq, 1, "the lower level trains every train_freq primitive steps")
         self.gradient_steps = as_int("gradient_steps", self.gradient_steps, 0)
-        self.n_demos = as_int("n_demos", self.n_demos, 1)
+        self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "None: all the episodes demo_path makes")
         self.max_episode_steps = as_optional_int(
             "max_episode_steps", self.max_episode_steps, 1, "None reads the env's time limit"
         )
@@ -417,9 +418,8 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _load_demonstrations(self) -> Demonstrations:
         """The first ``n_demos`` episodes of ``demo_path``, checked against the env's spaces."""
         assert self.env is not None and self.demo_path is not None
-        demonstrations = demonstrations_for(self.demo_path, self.env)
+        demonstrations = demonstrations_for(self.demo_path, self.env, self.n_demos)
         # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
-        demonstrations = demonstrations.first_episodes(self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)
         return demonstrations
 

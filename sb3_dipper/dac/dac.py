@@ -82,6 +82,7 @@ from sb3_dipper.common.validation import (
     as_float,
     as_int,
     as_optional_float,
+    as_optional_int,
     as_train_freq,
     check_goal_observation_space,
 )
@@ -342,7 +343,8 @@ class DAC(CheckedLoading, SAC):
     :param demo_path: the expert data: ``"auto"`` (the task's single default scripted demonstration), ``"auto:dart<N>"``
         (N DART episodes of its scripted expert), an npz file or a Minari dataset directory (see
         :mod:`sb3_dipper.common.demonstrations`)
-    :param n_demos: demonstration episodes used (the DIPPER paper: one)
+    :param n_demos: how many demonstration episodes to use, from the first (the DIPPER paper: one; default: all N of
+        ``"auto:dart<N>"``, the one of ``"auto"``, the first episode of a file or dataset)
     :param goal_conditioned_discriminator: feed the desired goal to the discriminator, ``D(s, a, g)``
     :param absorbing_states: DAC's absorbing states for episodes that end by termination (no effect on tasks that only
         end at the time limit)
@@ -389,7 +391,7 @@ class DAC(CheckedLoading, SAC):
         sde_sample_freq: int = -1,
         use_sde_at_warmup: bool = False,
         demo_path: str | None = "auto",
-        n_demos: int = 1,
+        n_demos: int | None = None,
         goal_conditioned_discriminator: bool = True,
         absorbing_states: bool = True,
         gradient_penalty_coef: float = 10.0,
@@ -465,7 +467,7 @@ class DAC(CheckedLoading, SAC):
                 "demo_path", 'DAC imitates demonstrations: pass demo_path="auto", an npz file or a Minari dataset directory'
             )
         # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
-        self.n_demos = as_int("n_demos", self.n_demos, 1, "DAC needs at least one demonstration episode")
+        self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "DAC needs at least one demonstration episode")
         self.buffer_size = as_int("buffer_size", self.buffer_size, 1)
         self.learning_starts = as_int("learning_starts", self.learning_starts, 0)
         self.batch_size = as_int("batch_size", self.batch_size, 1)
@@ -525,8 +527,7 @@ class DAC(CheckedLoading, SAC):
 
     def _load_expert(self) -> ExpertTransitions:
         assert self.env is not None and isinstance(self.action_space, spaces.Box) and self.demo_path is not None
-        demonstrations = demonstrations_for(self.demo_path, self.env)
-        demonstrations = demonstrations.first_episodes(self.n_demos)
+        demonstrations = demonstrations_for(self.demo_path, self.env, self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
         scaled_actions = self.policy.scale_action(actions)
