@@ -295,6 +295,43 @@ def test_a_damaged_cached_default_demonstration_says_which_file_to_delete(tmp_pa
     assert [path.name for path in cached.parent.iterdir()] == [cached.name]
 
 
+def rewrite_npz(path, change):
+    """Rewrite the npz file at ``path`` as a valid archive, each array passed through ``change(key, array)``."""
+    with np.load(path) as data:
+        arrays = {key: change(key, data[key]) for key in data.files}
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize("factor", [50.0, -1.0])
+def test_a_cached_default_demonstration_changed_since_it_was_written_is_refused(tmp_path, monkeypatch, factor):
+    """The reported case: the cache rewritten as a valid npz with its actions scaled by 50 (or negated) was cloned."""
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    made = default_demonstrations(MAZE)
+    cached = default_demonstration_path(MAZE)
+    rewrite_npz(cached, lambda key, array: array * factor if key == "actions" else array)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(cached))}: its content does not match the digest .* delete"):
+        default_demonstrations(MAZE)
+    cached.unlink()
+    np.testing.assert_array_equal(default_demonstrations(MAZE).actions, made.actions)  # made again
+
+
+def test_a_cache_written_before_digests_is_made_again_with_a_warning(tmp_path, monkeypatch):
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    made = default_demonstrations(MAZE)
+    cached = default_demonstration_path(MAZE)
+    with np.load(cached) as data:
+        assert "sha256" in data.files
+    # Scaled and without a digest: a cache of an earlier version cannot be told from a changed one, so it is replaced.
+    with np.load(cached) as data:
+        old = {key: data[key] * 50.0 if key == "actions" else data[key] for key in data.files if key != "sha256"}
+    np.savez(cached, **old)
+    with pytest.warns(UserWarning, match=rf"{re.escape(str(cached))} was cached before .* made again"):
+        again = default_demonstrations(MAZE)
+    np.testing.assert_array_equal(again.actions, made.actions)
+    with np.load(cached) as data:
+        assert "sha256" in data.files
+
+
 # ---------------------------------------------------------------------------------------------------- preference files
 
 OBS_SPACE = spaces.Dict(
