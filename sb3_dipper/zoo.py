@@ -46,6 +46,7 @@ import shutil
 import sys
 import time
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,12 +54,13 @@ from typing import Any
 import numpy as np
 import optuna
 import pandas as pd
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import CSVOutputFormat
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
-from sb3_dipper.common.files import write_bytes_atomically
+from sb3_dipper.common.files import read_npz, write_bytes_atomically
 from sb3_dipper.dac import DAC
 from sb3_dipper.dipper import DIPPER
 from sb3_dipper.dpo_flat import DPOFlat
@@ -87,6 +89,10 @@ STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv
 # A paused run's checkpoint: <run folder>/resume/model.zip and the files beside it.
 RESUME_FOLDER = "resume"
 RESUME_MODEL = "model.zip"
+# What rl-zoo3 records in <run folder>/<env>/ when a run starts: its hyperparameters (and its flags in args.yml).
+CONFIG_FILE = "config.yml"
+# The evaluations EvalCallback records in the run folder, rewritten whole at every evaluation.
+EVALUATIONS_FILE = "evaluations.npz"
 
 
 class CSVProgressCallback(BaseCallback):
@@ -346,6 +352,18 @@ class RunControl:
     resume: Path | None = None
     label_page: tuple[str, int] | None = None
 
+    def check_resumable(self, env_name: str, hyperparameters: Mapping[str, Any]) -> None:
+        """With ``--resume``, refuse before anything changes a run that cannot continue as it was: other
+        hyperparameters than the run's own (:func:`check_resumed_hyperparameters`), or a damaged evaluation record.
+
+        :param env_name: the env's folder name in the run folder
+        :param hyperparameters: the hyperparameters given, as rl-zoo3 read them
+        """
+        if self.resume is None:
+            return
+        check_resumed_hyperparameters(self.resume, env_name, hyperparameters)
+        recorded_evaluations(self.resume)
+
 
 def parse_label_page(text: str) -> tuple[str, int]:
     """``--label-page``'s ``[HOST:]PORT`` as ``(host, port)``; the host defaults to this machine only."""
@@ -523,6 +541,133 @@ def checkpoint_steps(run_folder: Path) -> int:
     return saved_steps(run_folder / RESUME_FOLDER / RESUME_MODEL)[0]
 
 
+@dataclass(frozen=True)
+class RecordedObject:
+    """A Python object in a hyperparameter record (``!!python/name:torch.nn.ReLU``), kept as its tag and value."""
+
+    tag: str
+    value: Any
+
+    def __repr__(self) -> str:
+        return f"!!python/{self.tag}{'' if self.value in ('', None) else f' {self.value!r}'}"
+
+
+class _RecordLoader(yaml.SafeLoader):
+    """YAML's safe loader, reading the Python tags that rl-zoo3's ``yaml.dump`` writes into ``config.yml`` without
+    building any object: an ``OrderedDict`` becomes a dict, a tuple a tuple, anything else a :class:`RecordedObject`
+    (enough to compare two records)."""
+
+
+def _recorded_ordered_dict(loader: yaml.SafeLoader, node: yaml.Node) -> dict[Any, Any]:
+    (pairs,) = loader.construct_sequence(node, deep=True)  # type: ignore[arg-type]
+    return {key: value for key, value in pairs}
+
+
+def _recorded_tuple(loader: yaml.SafeLoader, node: yaml.Node) -> tuple[Any, ...]:
+    return tuple(loader.construct_sequence(node, deep=True))  # type: ignore[arg-type]
+
+
+def _recorded_object(loader: yaml.SafeLoader, tag: str, node: yaml.Node) -> RecordedObject:
+    if isinstance(node, yaml.MappingNode):
+        return RecordedObject(tag, loader.construct_mapping(node, deep=True))
+    if isinstance(node, yaml.SequenceNode):
+        return RecordedObject(tag, tuple(loader.construct_sequence(node, deep=True)))
+    return RecordedObject(tag, loader.construct_scalar(node))  # type: ignore[arg-type]
+
+
+_RecordLoader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict", _recorded_ordered_dict)
+_RecordLoader.add_constructor("tag:yaml.org,2002:python/tuple", _recorded_tuple)
+_RecordLoader.add_multi_constructor("tag:yaml.org,2002:python/", _recorded_object)
+
+
+def as_recorded(hyperparameters: Mapping[str, Any]) -> dict[str, Any]:
+    """``hyperparameters`` as rl-zoo3 records them in ``config.yml`` (``yaml.dump``) and :func:`recorded_hyperparameters`
+    reads them back, so that given and recorded ones compare alike."""
+    return yaml.load(yaml.dump(dict(hyperparameters)), Loader=_RecordLoader)
+
+
+def recorded_hyperparameters(config: Path) -> dict[str, Any]:
+    """The hyperparameters rl-zoo3 recorded in a run's ``config.yml``, read without running code."""
+    try:
+        record = yaml.load(config.read_text(), Loader=_RecordLoader)
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            f"{config} is missing: rl-zoo3 writes the hyperparameters a run starts with there, and --resume checks the "
+            "ones given against them. Restore it from a copy of the run folder, or start a new run (without --resume)."
+        ) from None
+    except yaml.YAMLError as error:
+        raise ValueError(
+            f"Malformed hyperparameter record {config}: {error}. Restore it from a copy of the run folder."
+        ) from error
+    if not isinstance(record, dict):
+        raise ValueError(f"Malformed hyperparameter record {config}: expected a mapping of hyperparameters")
+    return record
+
+
+def differing_hyperparameters(started: Mapping[str, Any], given: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    """``(name, started with, given)`` for every hyperparameter that differs (``None`` for one not set), by name.
+
+    A ``use_sde`` entry in a recorded ``*policy_kwargs`` dict that the given one lacks is no difference: SB3's SAC
+    writes its ``use_sde`` into the ``policy_kwargs`` it is handed, and rl-zoo3 records that dict after the model is
+    built (sb3-dipper's hierarchical algorithms handed theirs to SAC too before they copied it).
+    """
+    differing = []
+    for name in sorted(set(started) | set(given)):
+        recorded, wanted = started.get(name), given.get(name)
+        if name.endswith("policy_kwargs") and isinstance(recorded, dict) and isinstance(wanted, dict):
+            if "use_sde" in recorded and "use_sde" not in wanted:
+                recorded = {key: value for key, value in recorded.items() if key != "use_sde"}
+        if recorded != wanted:
+            differing.append((name, started.get(name), given.get(name)))
+    return differing
+
+
+def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mapping[str, Any]) -> None:
+    """Refuse to resume a run with hyperparameters (YAML entry, ``-params``, Optuna trial) other than its own.
+
+    rl-zoo3 hands the hyperparameters given to ``load``, which sets them on the model: a resumed run would continue
+    with new values and save them into its next checkpoint, a different experiment under the same run folder.
+
+    :param run_folder: the run folder given to ``--resume``
+    :param env_name: the env's folder name in the run folder, where rl-zoo3 writes ``config.yml``
+    :param given: the hyperparameters of this command, as rl-zoo3 records them
+    """
+    config = run_folder / env_name / CONFIG_FILE
+    differing = differing_hyperparameters(recorded_hyperparameters(config), as_recorded(given))
+    if not differing:
+        return
+    lines = "\n".join(
+        f"  {name}: started with {'(not set)' if started is None else repr(started)}, given "
+        f"{'(not set)' if wanted is None else repr(wanted)}"
+        for name, started, wanted in differing
+    )
+    raise ValueError(
+        f"--resume {run_folder}: the hyperparameters given differ from those the run was started with ({config}):\n"
+        f"{lines}\nA resumed run continues the same experiment. Resume it with the command that started it (the same "
+        "-params and hyperparameter file), or train these hyperparameters in a new run: leave out --resume."
+    )
+
+
+def recorded_evaluations(run_folder: Path) -> dict[str, np.ndarray] | None:
+    """The evaluations recorded in the run folder's ``evaluations.npz`` (``None`` if there are none yet), checked.
+
+    ``EvalCallback`` rewrites the whole file at every evaluation, in place: a run killed meanwhile leaves it cut short.
+    """
+    path = run_folder / EVALUATIONS_FILE
+    if not path.exists():
+        return None
+    fix = (
+        "It holds the evaluations of the run so far (a run killed while an evaluation was written leaves it cut "
+        "short): restore it from a copy of the run folder, or delete it to resume with the evaluations from the "
+        "checkpoint on only."
+    )
+    arrays = read_npz(path, "evaluation record", fix)
+    missing = [key for key in ("timesteps", "results", "ep_lengths") if key not in arrays]
+    if missing:
+        raise ValueError(f"Malformed evaluation record {path}: missing {missing}. {fix}")
+    return arrays
+
+
 def set_aside_part(run_folder: Path) -> None:
     """Move the monitor files and ``progress.csv`` of the part trained so far into ``<run>/part_<k>/``.
 
@@ -575,17 +720,16 @@ def continue_evaluations(callbacks: list[BaseCallback], num_timesteps: int, n_en
         callback.n_calls = num_timesteps // n_envs
         if not isinstance(callback, EvalCallback):
             continue
-        evaluations = run_folder / "evaluations.npz"
-        if not evaluations.exists():
+        data = recorded_evaluations(run_folder)
+        if data is None:
             continue
-        with np.load(evaluations) as data:
-            # Evaluations after the checkpoint (a part killed before its next pause) are made again.
-            kept = data["timesteps"] <= num_timesteps
-            callback.evaluations_timesteps = [int(step) for step in data["timesteps"][kept]]
-            callback.evaluations_results = [list(results) for results in data["results"][kept]]
-            callback.evaluations_length = [list(lengths) for lengths in data["ep_lengths"][kept]]
-            if "successes" in data:
-                callback.evaluations_successes = [list(successes) for successes in data["successes"][kept]]
+        # Evaluations after the checkpoint (a part killed before its next pause) are made again.
+        kept = data["timesteps"] <= num_timesteps
+        callback.evaluations_timesteps = [int(step) for step in data["timesteps"][kept]]
+        callback.evaluations_results = [list(results) for results in data["results"][kept]]
+        callback.evaluations_length = [list(lengths) for lengths in data["ep_lengths"][kept]]
+        if "successes" in data:
+            callback.evaluations_successes = [list(successes) for successes in data["successes"][kept]]
         if callback.evaluations_results:
             callback.best_mean_reward = max(float(np.mean(results)) for results in callback.evaluations_results)
 
@@ -674,6 +818,12 @@ def _install_run_folder_claim(control: RunControl | None = None) -> None:
                 # <dir>/<env>/vecnormalize.pkl, the normalisation statistics.
                 self.trained_agent = str(run_control.resume / RESUME_FOLDER / RESUME_MODEL)
                 self.continue_training = True
+
+        def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+            hyperparams, saved_hyperparams = super().read_hyperparameters()
+            # Before anything in the run folder changes (create_log_folder sets the last part's logs aside).
+            run_control.check_resumable(str(self.env_name), saved_hyperparams)
+            return hyperparams, saved_hyperparams
 
         def create_log_folder(self) -> None:
             if run_control.resume is not None:

@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+import torch as th
 from gymnasium import spaces
 from stable_baselines3.common import save_util
 
@@ -199,6 +200,28 @@ def test_a_single_file_checkpoint_round_trips_through_a_stream(model_class, kwar
     np.testing.assert_array_equal(resumed.replay_buffer.actions, model.replay_buffer.actions)
 
 
+@pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, RAPS, DAC, DPOFlat])
+def test_a_model_file_with_nan_weights_is_refused_at_load_naming_the_tensor(model_class, tmp_path):
+    """Saved after its training diverged, a model failed only at its first prediction, inside torch's Normal."""
+    model = any_tiny_model(model_class, short_maze())
+    name, weight = next(iter(model.policy.named_parameters()))
+    with th.no_grad():
+        weight.view(-1)[0] = float("nan")
+    model.save(tmp_path / "model.zip")
+    path = re.escape(str(tmp_path / "model.zip"))
+    with pytest.raises(ValueError, match=rf"{path} holds NaN or infinite values in \S*policy\.{re.escape(name)}: .*earlier"):
+        model_class.load(tmp_path / "model.zip")
+
+
+def test_an_infinite_torch_variable_is_named_too(tmp_path):
+    model = tiny_model(DIPPER, short_maze())
+    with th.no_grad():
+        model.lower.log_ent_coef.fill_(float("inf"))
+    model.save(tmp_path / "model.zip")
+    with pytest.raises(ValueError, match=r"holds NaN or infinite values in lower\.log_ent_coef: "):
+        DIPPER.load(tmp_path / "model.zip", env=short_maze())
+
+
 # ---------------------------------------------------------------------------------------------------- demonstrations
 
 
@@ -270,6 +293,43 @@ def test_a_damaged_cached_default_demonstration_says_which_file_to_delete(tmp_pa
     cached.unlink()
     assert default_demonstrations(MAZE).n_episodes == 1  # made again
     assert [path.name for path in cached.parent.iterdir()] == [cached.name]
+
+
+def rewrite_npz(path, change):
+    """Rewrite the npz file at ``path`` as a valid archive, each array passed through ``change(key, array)``."""
+    with np.load(path) as data:
+        arrays = {key: change(key, data[key]) for key in data.files}
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize("factor", [50.0, -1.0])
+def test_a_cached_default_demonstration_changed_since_it_was_written_is_refused(tmp_path, monkeypatch, factor):
+    """The reported case: the cache rewritten as a valid npz with its actions scaled by 50 (or negated) was cloned."""
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    made = default_demonstrations(MAZE)
+    cached = default_demonstration_path(MAZE)
+    rewrite_npz(cached, lambda key, array: array * factor if key == "actions" else array)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(cached))}: its content does not match the digest .* delete"):
+        default_demonstrations(MAZE)
+    cached.unlink()
+    np.testing.assert_array_equal(default_demonstrations(MAZE).actions, made.actions)  # made again
+
+
+def test_a_cache_written_before_digests_is_made_again_with_a_warning(tmp_path, monkeypatch):
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    made = default_demonstrations(MAZE)
+    cached = default_demonstration_path(MAZE)
+    with np.load(cached) as data:
+        assert "sha256" in data.files
+    # Scaled and without a digest: a cache of an earlier version cannot be told from a changed one, so it is replaced.
+    with np.load(cached) as data:
+        old = {key: data[key] * 50.0 if key == "actions" else data[key] for key in data.files if key != "sha256"}
+    np.savez(cached, **old)
+    with pytest.warns(UserWarning, match=rf"{re.escape(str(cached))} was cached before .* made again"):
+        again = default_demonstrations(MAZE)
+    np.testing.assert_array_equal(again.actions, made.actions)
+    with np.load(cached) as data:
+        assert "sha256" in data.files
 
 
 # ---------------------------------------------------------------------------------------------------- preference files

@@ -226,6 +226,22 @@ def test_auto_dart_demonstrations_are_the_experts_noisy_episodes_cached_apart(tm
     assert model.lower.demonstrations is not None and len(model.lower.demonstrations) == len(dart)
 
 
+def test_auto_dart_without_n_demos_clones_all_its_episodes(tmp_path, monkeypatch):
+    """The reported case: 'auto:dart20' without n_demos made and cached 20 episodes and cloned one."""
+    monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
+    env = short_maze()
+    all_three = tiny_model(DIPPER, env, demo_path="auto:dart3").lower.demonstrations
+    assert all_three is not None and len(np.unique(all_three.last_step)) == 3
+    assert len(all_three) == len(demonstrations_for("auto:dart3", env))
+    two = tiny_model(HIER, env, demo_path="auto:dart3", n_demos=2).lower.demonstrations
+    assert two is not None and len(np.unique(two.last_step)) == 2
+    message = r"n_demos=4 asks for more episodes than demo_path='auto:dart3' makes \(3\): for more, use demo_path='auto:dart4'"
+    with pytest.raises(ValueError, match=message + r".*at most n_demos=3 \(leaving n_demos out uses all 3\)"):
+        tiny_model(DIPPER, env, demo_path="auto:dart3", n_demos=4)
+    with pytest.raises(ValueError, match=r"n_demos=2 asks for more episodes than demo_path='auto' makes \(1\)"):
+        tiny_model(HIER, env, demo_path="auto", n_demos=2)
+
+
 @pytest.mark.parametrize("spec", ["auto:dart0", "auto:dart", "auto:20", "auto:dart-5"])
 def test_malformed_auto_demonstration_specs_say_what_is_accepted(spec):
     with pytest.raises(ValueError, match=r"demo_path='auto:.*'auto' \(one episode\) or 'auto:dart<N>'"):

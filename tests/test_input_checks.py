@@ -1,15 +1,22 @@
 """Settings out of range, integer settings given as floats or strings, malformed goal spaces and non-finite terminal
-observations are refused at construction (or where the observation enters), with the parameter and its range named."""
+observations are refused at construction and at load (or where the observation enters), with the parameter and its range named;
+the dicts a constructor is given are left as they were."""
 
+import copy
 import inspect
+import json
 import math
+import re
 import warnings
+import zipfile
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from stable_baselines3 import SAC
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_dipper import DAC, DIPPER, HIER, PIPER, RAPS
@@ -143,10 +150,59 @@ def stored_setting(model, name: str):
     return value.frequency if name == "train_freq" and not isinstance(value, int) else value
 
 
+@pytest.fixture(scope="module")
+def saved_models(env, tmp_path_factory):
+    """One saved tiny model of each algorithm, built from valid settings."""
+    folder = tmp_path_factory.mktemp("saved")
+    for model_class in ALL_ALGORITHMS:
+        any_tiny_model(model_class, env).save(folder / f"{model_class.__name__}.zip")
+    return folder
+
+
+def with_saved_setting(saved: Path, path: Path, name: str, value) -> Path:
+    """A copy of the model file ``saved`` at ``path`` whose data holds ``value`` for the setting ``name``."""
+    with zipfile.ZipFile(saved) as archive:
+        members = {member: archive.read(member) for member in archive.namelist()}
+    data = json.loads(members["data"])
+    key = name if name in data else f"_{name}"  # SB3 keeps some settings under a private name
+    assert key in data, name
+    data[key] = value
+    members["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(path, "w") as archive:
+        for member, content in members.items():
+            archive.writestr(member, content)
+    return path
+
+
+@pytest.mark.parametrize(("model_class", "name", "value", "message"), list(bad_setting_cases()))
+def test_a_setting_out_of_range_in_a_saved_file_is_refused_at_load(saved_models, tmp_path, model_class, name, value, message):
+    """load runs the constructor's checks on the settings it reads, and names the file."""
+    path = with_saved_setting(saved_models / f"{model_class.__name__}.zip", tmp_path / "edited.zip", name, value)
+    with pytest.raises(ValueError, match=f"{re.escape(str(path))} holds a setting .*: {name} {message}"):
+        model_class.load(path)
+
+
+def test_dipper_load_refuses_a_bad_beta_or_planning_mode_in_the_file_or_given_to_it(saved_models, tmp_path):
+    """The reported cases: beta = -1 and planning = "bogus" in a zip's data went through load, predict and learn."""
+    saved = saved_models / "DIPPER.zip"
+    beta = with_saved_setting(saved, tmp_path / "beta.zip", "beta", -1.0)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(beta))} holds .*: beta must be a finite number > 0, got -1.0"):
+        DIPPER.load(beta, env=short_maze())
+    planning = with_saved_setting(saved, tmp_path / "planning.zip", "planning", "bogus")
+    with pytest.raises(ValueError, match=r"Unknown planning 'bogus': choose one of \('off', 'subgoal', 'waypoint'\)"):
+        DIPPER.load(planning)
+    # A value given to load is checked too, and said to come from there.
+    with pytest.raises(ValueError, match=rf"DIPPER.load\({re.escape(str(saved))}, beta=-1.0\): beta must be"):
+        DIPPER.load(saved, beta=-1.0)
+    # Settings given to load as the zoo's YAML gives them are converted as the constructor converts them.
+    assert DIPPER.load(saved, pairs_per_batch="8.0").pairs_per_batch == 8
+
+
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_integer_settings_given_as_whole_floats_become_ints(env, model_class):
-    reference = any_tiny_model(model_class, env)
     names = [name for name in INTEGER_SETTINGS if name in constructor_parameters(model_class)]
+    # n_demos defaults to None (all the episodes demo_path makes): given, it is converted as the others are.
+    reference = any_tiny_model(model_class, env, **({"n_demos": 1} if "n_demos" in names else {}))
     given = {name: float(stored_setting(reference, name)) for name in names}
     model = any_tiny_model(model_class, env, **given)
     for name in names:
@@ -172,6 +228,40 @@ def test_float_settings_from_the_zoo_train_past_learning_starts():
     model = tiny_model(DIPPER, env, option_steps=5.0, n_preference_pairs=2e2, pairs_per_batch=8.0, trajectory_buffer_size=5e1)
     model.learn(80)
     assert model.num_timesteps == 80 and len(model.preferences) > 0
+
+
+# Every dict a constructor takes, with a content the algorithms that take it accept.
+DICT_SETTINGS = {
+    "policy_kwargs": {"net_arch": [16]},
+    "low_policy_kwargs": {"net_arch": [16]},
+    "replay_buffer_kwargs": {"n_sampled_goal": 2},
+    "high_replay_buffer_kwargs": {"n_sampled_goal": 2},
+    "low_level_kwargs": {"target_update_interval": 1},
+    "reward_model_kwargs": {"net_arch": [16]},
+    "discriminator_kwargs": {"net_arch": [16]},
+}
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_the_dicts_given_to_a_constructor_are_left_as_they_were(model_class):
+    names = [name for name in DICT_SETTINGS if name in constructor_parameters(model_class)]
+    given = {name: copy.deepcopy(DICT_SETTINGS[name]) for name in names}
+    assert "policy_kwargs" in given
+    model = any_tiny_model(model_class, short_maze(), **given)
+    model.learn(45)
+    assert given == {name: DICT_SETTINGS[name] for name in given}
+    # What the model keeps (and saves) is what it was given, not what its inner SACs added to their copies (DAC is an
+    # SB3 SAC itself, which keeps use_sde among its own policy_kwargs).
+    if not isinstance(model, SAC):
+        assert model.policy_kwargs == DICT_SETTINGS["policy_kwargs"]
+
+
+def test_one_policy_kwargs_dict_builds_hier_then_dipper(env):
+    """The reported case: HIER's higher SAC wrote use_sde into the dict, which DIPPER's policy then refused."""
+    policy_kwargs = {"net_arch": [16]}
+    tiny_model(HIER, env, policy_kwargs=policy_kwargs)
+    dipper = tiny_model(DIPPER, env, policy_kwargs=policy_kwargs)
+    assert policy_kwargs == {"net_arch": [16]} and dipper.policy_kwargs == policy_kwargs
 
 
 # ---------------------------------------------------------------------------------------------------- goal spaces

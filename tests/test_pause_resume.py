@@ -3,9 +3,11 @@ continues the run in its folder to its whole budget, and ``benchmark.py learning
 
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
+from collections import OrderedDict
 from pathlib import Path
 
 import gymnasium as gym
@@ -13,6 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import rl_zoo3
+import torch as th
+import yaml
 from stable_baselines3 import SAC
 from stable_baselines3.common.callbacks import CheckpointCallback, EvalCallback
 
@@ -21,6 +25,7 @@ from sb3_dipper.zoo import (
     RESUME_FOLDER,
     RESUME_MODEL,
     PauseCheckpointCallback,
+    check_resumed_hyperparameters,
     continue_evaluations,
     saved_steps,
     set_aside_part,
@@ -28,6 +33,7 @@ from sb3_dipper.zoo import (
 )
 from tests.conftest import short_maze, tiny_model
 from tests.test_benchmark import ENV_ID, learning_command, run_folder
+from tests.test_files import truncate
 
 
 @pytest.mark.parametrize("algo", ["hier", "sac"])
@@ -176,18 +182,34 @@ zoo.main()
 """
 
 
+# A tiny SAC run of rl-zoo3's own Pendulum entry: the quickest run to pause and resume.
+SAC_PARAMS = ["learning_starts:100", "buffer_size:1000", "batch_size:32"]
+
+
+def pendulum_flags(log_folder: Path) -> list[str]:
+    conf = Path(rl_zoo3.__file__).parent / "hyperparams" / "sac.yml"
+    flags = ["--algo", "sac", "--env", "Pendulum-v1", "--conf-file", str(conf), "-f", str(log_folder), "--seed", "0"]
+    return [*flags, "-n", "300", "--eval-freq", "-1"]
+
+
+def zoo_train(*flags: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "sb3_dipper.zoo", "train", *flags], capture_output=True, text=True, timeout=300
+    )
+
+
+def paused_pendulum_run(log_folder: Path) -> Path:
+    paused = zoo_train(*pendulum_flags(log_folder), "-params", *SAC_PARAMS, "--pause-after-minutes", "0")
+    assert paused.returncode == 0, paused.stderr[-3000:]
+    run = log_folder / "sac" / "Pendulum-v1_1"
+    assert (run / RESUME_FOLDER / RESUME_MODEL).is_file()
+    return run
+
+
 def test_a_resumed_run_keeps_its_checkpoint_until_its_final_model_is_written(tmp_path):
     """Killed between the end of training and the final model, a resumed run must still be resumable."""
-    conf = Path(rl_zoo3.__file__).parent / "hyperparams" / "sac.yml"
-    flags = ["--algo", "sac", "--env", "Pendulum-v1", "--conf-file", str(conf), "-f", str(tmp_path), "--seed", "0"]
-    flags += ["-n", "300", "--eval-freq", "-1", "-params", "learning_starts:100", "buffer_size:1000", "batch_size:32"]
-    paused = subprocess.run(
-        [sys.executable, "-m", "sb3_dipper.zoo", "train", *flags, "--pause-after-minutes", "0"],
-        capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
-    assert paused.returncode == 0, paused.stderr[-3000:]
-    run = tmp_path / "sac" / "Pendulum-v1_1"
-    assert (run / RESUME_FOLDER / RESUME_MODEL).is_file()
+    run = paused_pendulum_run(tmp_path)
+    flags = [*pendulum_flags(tmp_path), "-params", *SAC_PARAMS]
     resumed = subprocess.run(
         [sys.executable, "-c", RESUME_SCRIPT, str(run), *flags, "--resume", str(run)],
         capture_output=True, text=True, timeout=300,
@@ -196,3 +218,68 @@ def test_a_resumed_run_keeps_its_checkpoint_until_its_final_model_is_written(tmp
     assert (run / "checkpoint_at_final_save").read_text() == "True"
     assert saved_steps(run / "Pendulum-v1.zip") == (300, 300)
     assert not (run / RESUME_FOLDER).exists()  # removed once the final model was written
+
+
+def files_under(folder: Path) -> dict[Path, bytes]:
+    return {path.relative_to(folder): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+def test_a_run_resumed_with_other_hyperparameters_or_a_damaged_evaluation_record_is_refused(tmp_path):
+    """The reported cases: ``--resume RUN -params ...`` trained on with the new values (and saved them), or failed in
+    SB3 ("'NoneType' object has no attribute 'load_state_dict'" for ent_coef); a truncated evaluations.npz failed with
+    a BadZipFile naming no file. Both are refused before anything in the run folder changes."""
+    run = paused_pendulum_run(tmp_path)
+    before = files_under(run)
+    resume = [*pendulum_flags(tmp_path), "--resume", str(run)]
+    refused = zoo_train(*resume, "-params", *SAC_PARAMS, "learning_rate:0.01", "ent_coef:0.05")
+    assert refused.returncode != 0
+    config = re.escape(str(run / "Pendulum-v1" / "config.yml"))
+    assert re.search(rf"the hyperparameters given differ from those the run was started with \({config}\)", refused.stderr)
+    assert "  ent_coef: started with (not set), given 0.05\n" in refused.stderr
+    assert "  learning_rate: started with 0.001, given 0.01\n" in refused.stderr
+    assert "leave out --resume" in refused.stderr
+    assert files_under(run) == before
+    np.savez(run / "evaluations.npz", timesteps=np.array([100]), results=np.zeros((1, 2)), ep_lengths=np.full((1, 2), 200))
+    truncate(run / "evaluations.npz")
+    before = files_under(run)
+    damaged = zoo_train(*resume, "-params", *SAC_PARAMS)
+    assert damaged.returncode != 0
+    assert f"Malformed evaluation record {run / 'evaluations.npz'}: not a complete npz archive" in damaged.stderr
+    assert files_under(run) == before
+
+
+def write_config(run: Path, env_name: str, hyperparameters: dict) -> None:
+    """A run's config.yml as rl-zoo3 writes it (an OrderedDict dumped by yaml)."""
+    (run / env_name).mkdir(parents=True)
+    record = OrderedDict((key, hyperparameters[key]) for key in sorted(hyperparameters))
+    (run / env_name / "config.yml").write_text(yaml.dump(record))
+
+
+STARTED = {
+    "beta": 0.1,
+    "learning_rate": 0.001,
+    "n_preference_pairs": 10000,
+    "train_freq": (1, "episode"),
+    # rl-zoo3 records the dict after the model is built: SB3's SAC has added its use_sde.
+    "policy_kwargs": {"net_arch": [16], "activation_fn": th.nn.Tanh, "use_sde": False},
+}
+
+
+def test_the_hyperparameters_of_a_resumed_run_are_compared_with_its_record(tmp_path):
+    write_config(tmp_path, "PointMazeFourRooms-v0", STARTED)
+    same = {**STARTED, "policy_kwargs": {"net_arch": [16], "activation_fn": th.nn.Tanh}}
+    check_resumed_hyperparameters(tmp_path, "PointMazeFourRooms-v0", same)
+    changed = {**same, "beta": 0.5, "learning_rate": 0.01, "n_preference_pairs": 500}
+    changed["policy_kwargs"] = {"net_arch": [16], "activation_fn": th.nn.ReLU}
+    with pytest.raises(ValueError, match="differ from those the run was started with") as error:
+        check_resumed_hyperparameters(tmp_path, "PointMazeFourRooms-v0", changed)
+    lines = str(error.value).splitlines()
+    assert lines[1:5] == [
+        "  beta: started with 0.1, given 0.5",
+        "  learning_rate: started with 0.001, given 0.01",
+        "  n_preference_pairs: started with 10000, given 500",
+        "  policy_kwargs: started with {'activation_fn': !!python/name:torch.nn.modules.activation.Tanh, 'net_arch': [16], "
+        "'use_sde': False}, given {'activation_fn': !!python/name:torch.nn.modules.activation.ReLU, 'net_arch': [16]}",
+    ]
+    with pytest.raises(FileNotFoundError, match=r"config.yml is missing: .*start a new run"):
+        check_resumed_hyperparameters(tmp_path, "FetchPush-v4", same)

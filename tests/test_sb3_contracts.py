@@ -5,6 +5,7 @@ and running both levels of a hierarchy without the algorithm (``export_policy``)
 import base64
 import json
 import pickle
+import re
 import warnings
 import zipfile
 from pathlib import Path
@@ -18,11 +19,12 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_dipper import DAC, DIPPER, HIER
+from sb3_dipper import DAC, DIPPER, HIER, RAPS
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.hierarchical_policy import HierarchicalPolicy
 from sb3_dipper.common.loading import _pickled_class_name
 from sb3_dipper.common.low_level import SubgoalVecEnv, low_level_observation_space
+from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 from tests.test_save_load import rollout_actions
 
@@ -209,6 +211,68 @@ def test_an_env_with_another_time_limit_is_refused_unless_max_episode_steps_says
         model.set_env(maze_with_time_limit(30))
     rebuilt = model_class.load(tmp_path / "model", env=maze_with_time_limit(30), max_episode_steps=30)
     assert rebuilt.max_episode_steps == 30
+
+
+def umaze():
+    """The small gymnasium-robotics maze: the four-room maze's spaces and time limit, a 3 x 3 subgoal box (not 7 x 7)."""
+    return make_vec_env("PointMaze_UMaze-v3", n_envs=1, seed=1, env_kwargs={"max_episode_steps": 20})
+
+
+SUBGOAL_BOXES = (
+    r"declares the subgoal space low=\[-1.5, -1.5\], high=\[1.5, 1.5\].* model's is low=\[-3.5, -3.5\], high=\[3.5, 3.5\]"
+)
+
+
+@pytest.mark.parametrize("model_class", [DIPPER, HIER, RAPS])
+def test_an_env_that_declares_another_subgoal_space_is_refused(model_class, tmp_path, maze_env):
+    """The reported case: a four-room model loaded onto the U-maze (same spaces) trained in the four-room box."""
+    model = any_tiny_model(model_class, maze_env)
+    model.save(tmp_path / "model.zip")
+    with pytest.raises(ValueError, match=SUBGOAL_BOXES + rf".*{model_class.__name__}\.load\(path, env=env, subgoal_space="):
+        model_class.load(tmp_path / "model.zip", env=umaze())
+    with pytest.raises(ValueError, match=SUBGOAL_BOXES):
+        model.set_env(umaze())
+    assert model.env is not None and model.get_env().envs[0].spec.id == "PointMazeFourRooms-v0"  # unchanged
+    # Without an env first, the check comes with set_env.
+    with pytest.raises(ValueError, match=SUBGOAL_BOXES):
+        model_class.load(tmp_path / "model.zip").set_env(umaze())
+
+
+def test_a_subgoal_space_chosen_by_the_user_is_kept_on_any_env(tmp_path, maze_env):
+    env = umaze()
+    chosen = resolve_subgoal_space(env)
+    tiny_model(HIER, maze_env).save(tmp_path / "model.zip")
+    loaded = HIER.load(tmp_path / "model.zip", env=env, subgoal_space=chosen)
+    assert loaded.subgoal_space is chosen and not loaded.subgoal_space_from_env
+    loaded.learn(45)
+    # A model built with a box of its own is not held to its env's box either.
+    box = SubgoalSpace(low=np.full(2, -2.0), high=np.full(2, 2.0), threshold=0.45)
+    tiny_model(HIER, maze_env, subgoal_space=box).save(tmp_path / "own_box.zip")
+    assert HIER.load(tmp_path / "own_box.zip", env=umaze()).subgoal_space.same_as(box)
+
+
+# (saved, given to load): a learned coefficient for a fixed one, the other way round, and another fixed value, which
+# the saved tensor would replace without a word.
+REFUSED_ENTROPY_COEFFICIENTS = [("auto", 0.05), (0.05, "auto"), (0.05, 0.1)]
+
+
+@pytest.mark.parametrize(("model_class", "name"), [(HIER, "ent_coef"), (HIER, "high_ent_coef"), (DAC, "ent_coef")])
+@pytest.mark.parametrize(("saved", "given"), REFUSED_ENTROPY_COEFFICIENTS)
+def test_an_entropy_coefficient_load_cannot_restore_is_refused(model_class, name, saved, given, tmp_path, maze_env):
+    """The reported case: resuming with -params ent_coef:0.05 failed inside SB3 with "'NoneType' object has no attribute
+    'load_state_dict'" (the saved model learned its coefficient)."""
+    any_tiny_model(model_class, maze_env, **{name: saved}).save(tmp_path / "model.zip")
+    message = rf"\({re.escape(str(tmp_path / 'model.zip'))}, ...\): the saved model .* \({name}={saved!r}\).*Leave {name} out"
+    with pytest.raises(ValueError, match=message):
+        model_class.load(tmp_path / "model.zip", env=maze_env, **{name: given})
+
+
+@pytest.mark.parametrize(("saved", "given"), [("auto", "auto_0.5"), (0.05, "0.05")])
+def test_an_entropy_coefficient_load_restores_as_given_is_accepted(saved, given, tmp_path, maze_env):
+    tiny_model(HIER, maze_env, ent_coef=saved).save(tmp_path / "model.zip")
+    loaded = HIER.load(tmp_path / "model.zip", env=maze_env, ent_coef=given)
+    loaded.learn(45)
+    assert (loaded.lower.ent_coef_optimizer is None) == (saved == 0.05)
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)

@@ -12,14 +12,18 @@ npz schema (one row per step, episodes concatenated in order):
 - ``actions`` ``(N, action_dim)``, ``rewards`` ``(N,)``, ``successes`` ``(N,)`` (``info["is_success"]`` after the step)
 - ``episode_lengths`` ``(E,)``: lengths of the episodes, summing to N
 - ``env_id`` (a string, as a 0-d array)
+- ``sha256`` (optional; a string, as a 0-d array): the :func:`arrays_digest` of the other arrays, which the cache of the
+  scripted demonstrations behind ``demo_path="auto"`` records when it is written and checks when it is read
 
 Files are written under a temporary name and renamed into place, and read without pickle; every error names the file.
 """
 
 from __future__ import annotations
 
+import hashlib
 import re
-from collections.abc import Callable
+import zipfile
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -33,6 +37,8 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 from sb3_dipper.common.files import read_npz, save_npz
 
 OBSERVATION_KEYS = ("observation", "achieved_goal", "desired_goal")
+# The member of an npz file that records the digest of its other arrays.
+DIGEST_KEY = "sha256"
 # Added to the demonstrations' std: an input the demonstration never varies (a fixed goal, an untouched object) is
 # scaled by 100 instead of without bound.
 DEMO_STD_FLOOR = 1e-2
@@ -120,8 +126,13 @@ class Demonstrations:
                 f"{action_space.shape} ({where}): {fix}"
             )
 
-    def save(self, path: str | Path) -> None:
-        """Write the episodes to an npz file (schema: see the module docstring), atomically."""
+    def save(self, path: str | Path, with_digest: bool = False) -> None:
+        """Write the episodes to an npz file (schema: see the module docstring), atomically.
+
+        :param path: the file
+        :param with_digest: also record the :func:`arrays_digest` of the arrays, which
+            ``load_demonstrations(path, verify_digest=True)`` checks
+        """
         arrays: dict[str, np.ndarray] = {f"observations/{key}": value for key, value in self.observations.items()}
         arrays.update({f"next_observations/{key}": value for key, value in self.next_observations.items()})
         arrays.update(
@@ -131,7 +142,31 @@ class Demonstrations:
             episode_lengths=self.episode_lengths,
             env_id=np.array(self.env_id),
         )
+        if with_digest:
+            arrays[DIGEST_KEY] = np.array(arrays_digest(arrays))
         save_npz(path, arrays)
+
+
+def arrays_digest(arrays: Mapping[str, np.ndarray]) -> str:
+    """The sha256 of named arrays (hex): each array's name, dtype, shape and bytes, in name order."""
+    digest = hashlib.sha256()
+    for key in sorted(arrays):
+        array = np.ascontiguousarray(arrays[key])
+        digest.update(f"{key}\0{array.dtype.str}\0{array.shape}\0".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def written_without_digest(path: str | Path) -> bool:
+    """Whether ``path`` is a readable npz archive that records no digest (:data:`DIGEST_KEY`).
+
+    ``False`` for a file that is not one (missing, truncated, ...): reading it says what is wrong.
+    """
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return f"{DIGEST_KEY}.npy" not in archive.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
 
 
 def collect_demonstrations(
@@ -222,13 +257,20 @@ def register_default_demonstrations(env_id: str, make: Callable[[int, float], De
     _DEFAULT_DEMONSTRATIONS[env_id] = make
 
 
-def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
-    """The demonstrations ``demo_path`` names for ``env``: an npz file or a Minari dataset directory
-    (:func:`load_demonstrations`); ``"auto"``, the single default demonstration registered for the env's id (the
-    paper's one demonstration); or ``"auto:dart<N>"``, N DART episodes of the same expert (its actions executed with
-    Gaussian noise of standard deviation ``DART_ACTION_NOISE``, beyond the paper; see :func:`collect_demonstrations`)."""
+def demonstrations_for(demo_path: str, env: VecEnv, n_demos: int | None = None) -> Demonstrations:
+    """The first ``n_demos`` episodes of the demonstrations ``demo_path`` names for ``env``: an npz file or a Minari
+    dataset directory (:func:`load_demonstrations`); ``"auto"``, the single default demonstration registered for the
+    env's id (the paper's one demonstration); or ``"auto:dart<N>"``, N DART episodes of the same expert (its actions
+    executed with Gaussian noise of standard deviation ``DART_ACTION_NOISE``, beyond the paper; see
+    :func:`collect_demonstrations`).
+
+    :param demo_path: the demonstrations
+    :param env: the env they are for
+    :param n_demos: how many episodes to use, from the first (``None``: all N of ``"auto:dart<N>"``, the one of
+        ``"auto"``, the first episode of a file or dataset)
+    """
     if demo_path != "auto" and not demo_path.startswith("auto:"):
-        return load_demonstrations(demo_path)
+        return load_demonstrations(demo_path).first_episodes(1 if n_demos is None else n_demos)
     dart = _DART_SPEC.fullmatch(demo_path)
     if demo_path != "auto" and dart is None:
         raise ValueError(
@@ -243,8 +285,20 @@ def demonstrations_for(demo_path: str, env: VecEnv) -> Demonstrations:
             f"demo_path={demo_path!r}: no scripted demonstrations for {spec.id!r} (tasks with them: "
             f"{sorted(_DEFAULT_DEMONSTRATIONS)}); pass a demonstration file (sb3-dipper-demos) instead"
         )
-    make = _DEFAULT_DEMONSTRATIONS[spec.id]
-    return make(1, 0.0) if dart is None else make(int(dart.group(1)), DART_ACTION_NOISE)
+    n_episodes = 1 if dart is None else int(dart.group(1))
+    if n_demos is not None and n_demos > n_episodes:
+        more = (
+            f"demo_path='auto:dart{n_demos}' (that many DART episodes of the same expert)"
+            if dart is not None
+            else f"demo_path='auto:dart{n_demos}' (DART episodes of the same expert) or a file of {n_demos} episodes "
+            f"(sb3-dipper-demos --env {spec.id} --n-episodes {n_demos})"
+        )
+        raise ValueError(
+            f"n_demos={n_demos} asks for more episodes than demo_path={demo_path!r} makes ({n_episodes}): for more, "
+            f"use {more}; or use at most n_demos={n_episodes} (leaving n_demos out uses all {n_episodes})"
+        )
+    demonstrations = _DEFAULT_DEMONSTRATIONS[spec.id](n_episodes, 0.0 if dart is None else DART_ACTION_NOISE)
+    return demonstrations.first_episodes(n_episodes if n_demos is None else n_demos)
 
 
 def normalize_like_demonstrations(
@@ -274,24 +328,30 @@ def normalize_like_demonstrations(
     vec_normalize.training = False
 
 
-def load_demonstrations(path: str | Path, n_episodes: int | None = None) -> Demonstrations:
+def load_demonstrations(path: str | Path, n_episodes: int | None = None, verify_digest: bool = False) -> Demonstrations:
     """Read demonstrations from our npz file or from a Minari dataset directory (needs ``pip install minari``).
 
     :param path: the npz file or Minari directory
     :param n_episodes: keep the first ``n_episodes`` (from 1 to all; default: all)
+    :param verify_digest: refuse an npz file whose arrays do not match the digest it records, or that records none
+        (``Demonstrations.save(path, with_digest=True)`` writes one)
     """
     path = Path(path)
-    demonstrations = _load_minari(path) if path.is_dir() else _load_npz(path)
+    demonstrations = _load_minari(path) if path.is_dir() else _load_npz(path, verify_digest)
     return demonstrations if n_episodes is None else demonstrations.first_episodes(n_episodes)
 
 
-def _load_npz(path: Path) -> Demonstrations:
+def _load_npz(path: Path, verify_digest: bool) -> Demonstrations:
     arrays = read_npz(
         path,
         "demonstration file",
         "demo_path takes an npz file written by sb3-dipper-demos (or Demonstrations.save), a Minari dataset directory "
         'or "auto" / "auto:dart<N>".',
     )
+    recorded = arrays.pop(DIGEST_KEY, None)
+    if verify_digest and (recorded is None or str(recorded) != arrays_digest(arrays)):
+        problem = "records no digest" if recorded is None else "does not match the digest recorded when it was written"
+        raise ValueError(f"Demonstration file {path}: its content {problem} (was it edited, or damaged?).")
     required = ["actions", "rewards", "successes", "episode_lengths"] + [
         f"{group}/{key}" for group in ("observations", "next_observations") for key in OBSERVATION_KEYS
     ]

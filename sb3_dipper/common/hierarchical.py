@@ -13,7 +13,9 @@ callbacks' ``on_step`` runs once per primitive step, ``rollout/success_rate`` co
 from __future__ import annotations
 
 import copy
+import io
 import math
+import pathlib
 import sys
 import time
 import warnings
@@ -57,7 +59,13 @@ from sb3_dipper.common.low_level import (
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
-from sb3_dipper.common.validation import as_float, as_int, as_optional_int, check_goal_observation_space
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_float,
+    as_int,
+    as_optional_int,
+    check_goal_observation_space,
+)
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
 
@@ -101,7 +109,8 @@ class HierarchicalAlgorithm(CheckedLoading):
         :mod:`sb3_dipper.common.imitation`): an npz file, a Minari dataset directory, ``"auto"`` for the task's
         single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of its scripted expert (beyond
         the paper; :func:`~sb3_dipper.common.demonstrations.demonstrations_for`); ``None``: no cloning
-    :param n_demos: how many demonstration episodes to use
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -133,6 +142,9 @@ class HierarchicalAlgorithm(CheckedLoading):
     # Models saved before this setting existed load with its default.
     normalize_from_demos: bool = False
     greedy_episode_prob: float = 0.0
+    # Whether the subgoal space is the one the env declared (no subgoal_space given): then an env the model is loaded
+    # onto, or given with set_env, must declare the same. Models saved before this was recorded are checked too.
+    subgoal_space_from_env: bool = True
 
     def __init__(
         self,
@@ -155,7 +167,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         low_level_kwargs: dict[str, Any] | None = None,
         random_subgoal_prob: float = 0.0,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -179,33 +191,13 @@ class HierarchicalAlgorithm(CheckedLoading):
         if env is not None:
             env = maybe_make_env(env, verbose)
             check_goal_observation_space(env.observation_space, algorithm)
-        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
-        option_steps = as_int("option_steps", option_steps, 1)
-        buffer_size = as_int("buffer_size", buffer_size, 1)
-        learning_starts = as_int("learning_starts", learning_starts, 0)
-        batch_size = as_int("batch_size", batch_size, 1)
-        train_freq = as_int("train_freq", train_freq, 1, "the lower level trains every train_freq primitive steps")
-        gradient_steps = as_int("gradient_steps", gradient_steps, 0)
-        n_demos = as_int("n_demos", n_demos, 1)
-        max_episode_steps = as_optional_int("max_episode_steps", max_episode_steps, 1, "None reads the env's time limit")
-        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
-        tau = as_float("tau", tau, 0.0, 1.0, low_open=True)
-        gamma = as_float("gamma", gamma, 0.0, 1.0, low_open=True)
-        random_subgoal_prob = as_float("random_subgoal_prob", random_subgoal_prob, 0.0, 1.0)
-        demo_share = as_float("demo_share", demo_share, 0.0, 1.0)
-        bc_coef = as_float("bc_coef", bc_coef, 0.0, reason="it weighs a loss")
-        rl_coef = as_float("rl_coef", rl_coef, 0.0, reason="it weighs a loss")
-        greedy_episode_prob = as_float("greedy_episode_prob", greedy_episode_prob, 0.0, 1.0)
-        if normalize_from_demos and demo_path is None:
-            raise ValueError(
-                "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
-                "(an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or set normalize_from_demos=False"
-            )
         super().__init__(
             policy,
             env,
             learning_rate,
-            policy_kwargs=policy_kwargs,
+            # Copies of every dict given: SB3's SACs add their own keys (use_sde) to the dicts they are handed, and a
+            # caller may pass the same dict to another model.
+            policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -216,6 +208,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         )
         self.option_steps = option_steps
         self.subgoal_space = subgoal_space
+        self.subgoal_space_from_env = subgoal_space is None
         self.buffer_size = buffer_size
         self.learning_starts = learning_starts
         self.batch_size = batch_size
@@ -224,10 +217,10 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.train_freq = train_freq
         self.gradient_steps = gradient_steps
         self.ent_coef = ent_coef
-        self.replay_buffer_kwargs = {} if replay_buffer_kwargs is None else replay_buffer_kwargs
+        self.replay_buffer_kwargs = dict(replay_buffer_kwargs or {})
         self.low_learning_rate = low_learning_rate
-        self.low_policy_kwargs = {} if low_policy_kwargs is None else low_policy_kwargs
-        self.low_level_kwargs = {} if low_level_kwargs is None else low_level_kwargs
+        self.low_policy_kwargs = dict(low_policy_kwargs or {})
+        self.low_level_kwargs = dict(low_level_kwargs or {})
         self.random_subgoal_prob = random_subgoal_prob
         self.demo_path = demo_path
         self.n_demos = n_demos
@@ -242,12 +235,58 @@ class HierarchicalAlgorithm(CheckedLoading):
         self._low_steps_since_train = 0
         self._rng = np.random.default_rng(seed)
 
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: type[SelfHierarchicalAlgorithm],
+        path: str | pathlib.Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfHierarchicalAlgorithm:
+        """:meth:`CheckedLoading.load`; ``subgoal_space=`` replaces the saved subgoal space with the one given, which,
+        as one given to the constructor, no env's declared space has to match."""
+        if kwargs.get("subgoal_space") is not None:
+            kwargs["subgoal_space_from_env"] = False
+        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
+
     # ---------------------------------------------------------------------------------------------------- set-up
 
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        self.option_steps = as_int("option_steps", self.option_steps, 1)
+        self.buffer_size = as_int("buffer_size", self.buffer_size, 1)
+        self.learning_starts = as_int("learning_starts", self.learning_starts, 0)
+        self.batch_size = as_int("batch_size", self.batch_size, 1)
+        self.train_freq = as_int("train_freq", self.train_freq, 1, "the lower level trains every train_freq primitive steps")
+        self.gradient_steps = as_int("gradient_steps", self.gradient_steps, 0)
+        self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "None: all the episodes demo_path makes")
+        self.max_episode_steps = as_optional_int(
+            "max_episode_steps", self.max_episode_steps, 1, "None reads the env's time limit"
+        )
+        self.tau = as_float("tau", self.tau, 0.0, 1.0, low_open=True)
+        self.gamma = as_float("gamma", self.gamma, 0.0, 1.0, low_open=True)
+        self.random_subgoal_prob = as_float("random_subgoal_prob", self.random_subgoal_prob, 0.0, 1.0)
+        self.demo_share = as_float("demo_share", self.demo_share, 0.0, 1.0)
+        self.bc_coef = as_float("bc_coef", self.bc_coef, 0.0, reason="it weighs a loss")
+        self.rl_coef = as_float("rl_coef", self.rl_coef, 0.0, reason="it weighs a loss")
+        self.greedy_episode_prob = as_float("greedy_episode_prob", self.greedy_episode_prob, 0.0, 1.0)
+        if self.normalize_from_demos and self.demo_path is None:
+            raise InvalidSetting(
+                "normalize_from_demos",
+                "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
+                "(an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or set normalize_from_demos=False",
+            )
+
     def _setup_model(self) -> None:
+        self._check_settings()
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         if self.env is not None:
+            self._check_env_subgoal_space(self.env)
             self.subgoal_space = resolve_subgoal_space(self.env, self.subgoal_space)
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
             self._warn_if_options_outlast_episodes()
@@ -267,6 +306,33 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.option_env = OptionVecEnv(
                 self.env, self.subgoal_space, self.option_steps, self.low_level, sink=self._on_primitive_step
             )
+
+    def _check_env_subgoal_space(self, env: VecEnv) -> None:
+        """Refuse an env that declares another subgoal space than the one the model took from its env.
+
+        A model's higher level proposes subgoals in its own box; on an env with another one (a model of a larger maze
+        on a smaller maze with the same observation and action spaces) it would train and act in the old box without
+        a word. A box given by the user (``subgoal_space=``) is the user's choice and is not checked.
+        """
+        if self.subgoal_space is None or not self.subgoal_space_from_env:
+            return
+        declared = self._env_declared_subgoal_space()
+        env_space = resolve_subgoal_space(env)
+        if declared.same_as(env_space):
+            return
+        algorithm = type(self).__name__
+        raise ValueError(
+            f"The env declares the subgoal space {env_space.describe()}, but this {algorithm} model's is "
+            f"{declared.describe()} (the space of the env it was built on): its higher level would propose subgoals "
+            f"in that box. Use the model on an env with its subgoal space, or choose the box on purpose when loading: "
+            f"{algorithm}.load(path, env=env, subgoal_space=...) keeps the space given (the env's own is "
+            "sb3_dipper.common.subgoals.resolve_subgoal_space(env))."
+        )
+
+    def _env_declared_subgoal_space(self) -> SubgoalSpace:
+        """The part of the model's subgoal space that an env declares, to compare with another env's: all of it."""
+        assert self.subgoal_space is not None
+        return self.subgoal_space
 
     def _warn_if_options_outlast_episodes(self) -> None:
         """Allowed but rarely meant: every option is cut short by the episode's end, so the higher level acts once per
@@ -334,8 +400,8 @@ class HierarchicalAlgorithm(CheckedLoading):
             gradient_steps=self.gradient_steps,
             ent_coef=self.ent_coef,
             replay_buffer_class=HerReplayBuffer,
-            replay_buffer_kwargs=self.replay_buffer_kwargs,
-            policy_kwargs=self.low_policy_kwargs,
+            replay_buffer_kwargs=dict(self.replay_buffer_kwargs),
+            policy_kwargs=dict(self.low_policy_kwargs),
             device=self.device,
             demo_share=self.demo_share,
             bc_coef=self.bc_coef,
@@ -352,9 +418,8 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _load_demonstrations(self) -> Demonstrations:
         """The first ``n_demos`` episodes of ``demo_path``, checked against the env's spaces."""
         assert self.env is not None and self.demo_path is not None
-        demonstrations = demonstrations_for(self.demo_path, self.env)
+        demonstrations = demonstrations_for(self.demo_path, self.env, self.n_demos)
         # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
-        demonstrations = demonstrations.first_episodes(self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)
         return demonstrations
 
@@ -660,8 +725,11 @@ class HierarchicalAlgorithm(CheckedLoading):
         ``load_replay_buffer`` after ``set_env``). A model that has an env keeps its replay data, as in SB3, and its
         option layer moves to ``env``.
         """
-        if self.normalize_from_demos:  # refused before anything changes
+        # Refused before anything changes.
+        if self.normalize_from_demos:
             self._normalizable(unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None)
+        env = self._wrap_env(env, self.verbose)
+        self._check_env_subgoal_space(env)
         super().set_env(env, force_reset)
         if self.option_env is None:
             self._rebuild_keeping_parameters()

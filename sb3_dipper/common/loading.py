@@ -7,6 +7,13 @@
   a file without ``saved_by`` (SB3's ``SAC``, sb3-contrib's ``TQC``, another library's class) is refused too, naming
   the algorithm whose policy it holds (:func:`saving_algorithms`), unless it holds the loading class's own settings
   (a file of sb3-dipper 0.1.0, which wrote no ``saved_by``);
+* checks the settings of a loaded model as its constructor checks them (:meth:`CheckedLoading._check_settings`, run
+  by ``_setup_model``, which both call): a value out of range in the file (``beta = -1``, ``planning = "bogus"``) or
+  given to ``load`` is refused with an error that names the parameter and the file;
+* refuses a file whose networks, optimizer states or torch variables hold NaN or infinite values, naming the tensor
+  (a model saved after its training diverged would fail only at its first prediction, inside torch);
+* refuses an entropy coefficient given to ``load`` that the saved model's state cannot take
+  (:func:`check_entropy_coefficient`);
 * refuses an env whose time limit differs from the episode length the model's buffers were sized for
   (``max_episode_steps``), at ``load`` and at ``set_env``: trajectories would be cut into pieces without a word.
   ``load(path, env=env, max_episode_steps=N)`` rebuilds the model for the env's N-step episodes;
@@ -34,7 +41,7 @@ from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.files import save_model_atomically
-from sb3_dipper.common.validation import check_keyword_arguments, constructor_parameters
+from sb3_dipper.common.validation import InvalidSetting, as_int, check_keyword_arguments, constructor_parameters
 
 SelfCheckedLoading = TypeVar("SelfCheckedLoading", bound="CheckedLoading")
 
@@ -150,6 +157,68 @@ def _pickled_class_name(serialized: dict[str, Any]) -> str | None:
     return f"{module}.{name}" if module == serialized.get("__module__") else None
 
 
+def _invalid_setting_message(algorithm: str, path: Any, error: InvalidSetting, kwargs: dict[str, Any]) -> str:
+    """Where the refused setting of a loaded model came from (the file, or ``load``'s keywords) and how to fix it."""
+    if error.setting in kwargs:
+        return f"{algorithm}.load({path}, {error.setting}={kwargs[error.setting]!r}): {error}"
+    return (
+        f"{path} holds a setting {algorithm}'s constructor refuses: {error}. Was the file edited? Load it with a valid "
+        f"value, {algorithm}.load(path, {error.setting}=...), and save it again, or load another copy of the model."
+    )
+
+
+def first_non_finite_tensor(model: BaseAlgorithm) -> str | None:
+    """The name of the first tensor ``save`` writes (networks, optimizer states, torch variables) that holds NaN or
+    infinite values, such as ``lower.policy.actor.mu.weight``; ``None`` if every one is finite."""
+    state_dicts, variables = model._get_torch_save_params()
+    named = [(name, recursive_getattr(model, name).state_dict()) for name in state_dicts]
+    named += [(name, recursive_getattr(model, name)) for name in variables]
+    for name, value in named:
+        for tensor_name, tensor in _named_tensors(name, value):
+            if tensor.is_floating_point() and not bool(th.isfinite(tensor).all()):
+                return tensor_name
+    return None
+
+
+def _named_tensors(name: str, value: Any) -> list[tuple[str, th.Tensor]]:
+    """The tensors in ``value`` (a tensor, or dicts and lists of them: state dicts, optimizer states), each named by
+    its path from ``name``."""
+    if isinstance(value, th.Tensor):
+        return [(name, value)]
+    if isinstance(value, dict):
+        return [found for key, item in value.items() for found in _named_tensors(f"{name}.{key}", item)]
+    if isinstance(value, (list, tuple)):
+        return [found for index, item in enumerate(value) for found in _named_tensors(f"{name}.{index}", item)]
+    return []
+
+
+def check_entropy_coefficient(name: str, saved: Any, given: Any, where: str) -> None:
+    """Refuse an entropy coefficient given to ``load`` that the saved model's state would override or could not hold.
+
+    SB3's SAC learns its coefficient (``"auto"``, ``"auto_<initial value>"``) with an optimizer of its own, or keeps a
+    fixed one as a tensor; ``load`` restores either from the file. A learned one given for a fixed one (or the other
+    way round) finds no optimizer state to restore (SB3 fails with ``AttributeError: 'NoneType' object has no attribute
+    'load_state_dict'``), and another fixed value would be replaced by the saved one without a word. A learned one for
+    a learned one is kept: the file restores the learned value, whatever the initial one.
+
+    :param name: the setting (``ent_coef``, ``high_ent_coef``)
+    :param saved: its value in the file
+    :param given: the value given to ``load``
+    :param where: the call, for the message
+    """
+    saved_learns, given_learns = (str(value).startswith("auto") for value in (saved, given))
+    if saved_learns and given_learns:
+        return
+    if not saved_learns and not given_learns and float(saved) == float(given):
+        return
+    kind = "learns its entropy coefficient" if saved_learns else "keeps a fixed entropy coefficient"
+    raise ValueError(
+        f"{where}: the saved model {kind} ({name}={saved!r}), which the file restores; {name}={given!r} cannot take "
+        f"its place when loading. Leave {name} out to go on with the saved one, or train a new model with "
+        f"{name}={given!r}."
+    )
+
+
 def env_time_limit(env: VecEnv) -> int | None:
     """The env's time limit (``spec.max_episode_steps``), ``None`` if it has none."""
     spec = env.get_attr("spec", indices=[0])[0]
@@ -194,6 +263,17 @@ class CheckedLoading(BaseAlgorithm):
         check_keyword_arguments(cls, kwargs)
         return super().__new__(cls)
 
+    def _check_settings(self) -> None:
+        """Check the model's settings and convert them to what training needs (``"5e4"`` becomes ``50000``), raising
+        :class:`~sb3_dipper.common.validation.InvalidSetting` for a value out of range.
+
+        Each algorithm extends it with its own settings (calling ``super()``), and calls it first thing in
+        ``_setup_model``: the constructor builds its model there, and so does ``load``, after it has set the
+        settings read from the file (and those given to ``load``), so the one set of checks covers both.
+        """
+        # SB3's BaseAlgorithm keeps this setting under a private name.
+        self._stats_window_size = as_int("stats_window_size", self._stats_window_size, 1)
+
     def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
         """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly.
 
@@ -214,8 +294,9 @@ class CheckedLoading(BaseAlgorithm):
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfCheckedLoading:
-        """SB3's ``load``; refuses a file another algorithm saved, and an env whose time limit is not the model's
-        episode length (pass ``max_episode_steps=`` the env's limit to rebuild the model for the env's episodes).
+        """SB3's ``load``; refuses a file another algorithm saved, a setting the constructor would refuse (from the file or
+        given here), and an env whose time limit is not the model's episode length (pass ``max_episode_steps=`` the
+        env's limit to rebuild the model for the env's episodes).
         """
         fields = saved_data_fields(path)
         saved_by = fields.get("saved_by")
@@ -225,6 +306,9 @@ class CheckedLoading(BaseAlgorithm):
         # parameter, with an AssertionError or a KeyError.
         if saved_by is None and fields and (error := _other_librarys_file(cls, path, fields)) is not None:
             raise error
+        for name in constructor_parameters(cls):
+            if name.endswith("ent_coef") and name in kwargs and name in fields:
+                check_entropy_coefficient(name, fields[name], kwargs[name], f"{cls.__name__}.load({path}, ...)")
         if env is not None:
             env = cls._wrap_env(env, int(fields.get("verbose", 0)))
             check_time_limit(
@@ -233,7 +317,18 @@ class CheckedLoading(BaseAlgorithm):
                 cls.__name__,
                 f"rebuild it for the env's episodes with {cls.__name__}.load(path, env=env, max_episode_steps={{limit}})",
             )
-        return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)  # type: ignore[return-value]
+        try:
+            model = super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        except InvalidSetting as error:
+            raise InvalidSetting(error.setting, _invalid_setting_message(cls.__name__, path, error, kwargs)) from None
+        # Torch would only fail later, inside Normal(...) at the first prediction, naming neither file nor tensor.
+        damaged = first_non_finite_tensor(model)
+        if damaged is not None:
+            raise ValueError(
+                f"{path} holds NaN or infinite values in {damaged}: the model was saved after its training diverged, "
+                "or the file is damaged. Load an earlier checkpoint of the run."
+            )
+        return model  # type: ignore[return-value]
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""

@@ -11,7 +11,7 @@ Env modules declare their space, either as an attribute ``subgoal_space`` of the
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import gymnasium as gym
@@ -93,6 +93,26 @@ class SubgoalSpace:
     def compute_reward(self, achieved_subgoal: np.ndarray, subgoal: np.ndarray, _info: Any = None) -> np.ndarray:
         """Sparse lower-level reward, vectorised over the leading dimensions: 0 when reached, -1 otherwise."""
         return -(self.distance(achieved_subgoal, subgoal) > self.threshold).astype(np.float32)
+
+    def same_as(self, other: SubgoalSpace) -> bool:
+        """Whether ``other`` is the same space: the same class and the same value of every field (box, threshold,
+        indices, and a subclass's own fields)."""
+        return type(other) is type(self) and all(
+            _same_field(getattr(self, item.name), getattr(other, item.name)) for item in fields(self) if item.init
+        )
+
+    def describe(self) -> str:
+        """The box and threshold, for messages: ``low=[-3.5, -3.5], high=[3.5, 3.5], threshold 0.45``."""
+        indices = "" if self.indices is None else f", over achieved-goal entries {list(self.indices)}"
+        return f"low={self.low.tolist()}, high={self.high.tolist()}, threshold {self.threshold:g}{indices}"
+
+
+def _same_field(first: Any, second: Any) -> bool:
+    if isinstance(first, SubgoalSpace) and isinstance(second, SubgoalSpace):
+        return first.same_as(second)
+    if isinstance(first, np.ndarray) or isinstance(second, np.ndarray):
+        return bool(np.array_equal(np.asarray(first), np.asarray(second)))
+    return bool(first == second)
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,6 +15,21 @@ from stable_baselines3.common.vec_env import VecEnv
 GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 
 
+class InvalidSetting(ValueError):
+    """A setting refused by the checks of :meth:`~sb3_dipper.common.loading.CheckedLoading._check_settings`.
+
+    A ``ValueError``, as before; it also carries the parameter's name, so that ``load`` can say whether the value came
+    from the file or from its own keywords.
+
+    :param setting: the parameter's name
+    :param message: what is wrong and what is allowed
+    """
+
+    def __init__(self, setting: str, message: str) -> None:
+        super().__init__(message)
+        self.setting = setting
+
+
 def check_goal_observation_space(observation_space: spaces.Space, algorithm: str) -> None:
     """Refuse envs that are not flat goal envs before SB3 wraps them (its own errors are less helpful)."""
     if not isinstance(observation_space, spaces.Dict) or not set(GOAL_KEYS) <= set(observation_space.spaces):
@@ -122,11 +137,11 @@ def _interval(low: float, high: float, low_open: bool, high_open: bool) -> str:
 def _number(name: str, value: Any, expected: str) -> float:
     """``value`` as a float, for a setting that may arrive as a string from the zoo or a YAML file (``"1e-3"``)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating, str)):
-        raise ValueError(f"{name} must be {expected}, got {value!r} ({type(value).__name__})")
+        raise InvalidSetting(name, f"{name} must be {expected}, got {value!r} ({type(value).__name__})")
     try:
         return float(value)
     except ValueError:
-        raise ValueError(f"{name} must be {expected}, got {value!r}") from None
+        raise InvalidSetting(name, f"{name} must be {expected}, got {value!r}") from None
 
 
 def as_int(name: str, value: Any, minimum: int, reason: str = "") -> int:
@@ -147,10 +162,10 @@ def as_int(name: str, value: Any, minimum: int, reason: str = "") -> int:
         expected = f"a whole number (an integer >= {minimum})"
         number = _number(name, value, expected)
         if not number.is_integer():
-            raise ValueError(f"{name} must be {expected}, got {value!r}")
+            raise InvalidSetting(name, f"{name} must be {expected}, got {value!r}")
         integer = int(number)
     if integer < minimum:
-        raise ValueError(f"{name} must be at least {minimum}, got {value!r}{f' ({reason})' if reason else ''}")
+        raise InvalidSetting(name, f"{name} must be at least {minimum}, got {value!r}{f' ({reason})' if reason else ''}")
     return integer
 
 
@@ -190,10 +205,19 @@ def as_float(
     number = _number(name, value, f"a finite number{interval}")
     inside = (low < number if low_open else low <= number) and (number < high if high_open else number <= high)
     if not (math.isfinite(number) and inside):
-        raise ValueError(f"{name} must be a finite number{interval}, got {value!r}{f' ({reason})' if reason else ''}")
+        raise InvalidSetting(
+            name, f"{name} must be a finite number{interval}, got {value!r}{f' ({reason})' if reason else ''}"
+        )
     return number
 
 
 def as_optional_float(name: str, value: Any, low: float = -math.inf, high: float = math.inf, **kwargs: Any) -> float | None:
     """:func:`as_float` for a setting whose ``None`` means "off" or "the default"."""
     return None if value is None else as_float(name, value, low, high, **kwargs)
+
+
+def as_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
+    """A setting that names one of ``choices`` (``value_reg``, ``planning``)."""
+    if value not in choices:
+        raise InvalidSetting(name, f"Unknown {name} {value!r}: choose one of {choices}")
+    return value

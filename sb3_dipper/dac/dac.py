@@ -77,7 +77,15 @@ from sb3_dipper.common.files import (
 )
 from sb3_dipper.common.hierarchical import has_finished_episode, sibling_path
 from sb3_dipper.common.loading import CheckedLoading
-from sb3_dipper.common.validation import as_float, as_int, as_train_freq, check_goal_observation_space
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_float,
+    as_int,
+    as_optional_float,
+    as_optional_int,
+    as_train_freq,
+    check_goal_observation_space,
+)
 from sb3_dipper.dac.policies import Discriminator, MlpPolicy, MultiInputPolicy
 
 SelfDAC = TypeVar("SelfDAC", bound="DAC")
@@ -335,7 +343,8 @@ class DAC(CheckedLoading, SAC):
     :param demo_path: the expert data: ``"auto"`` (the task's single default scripted demonstration), ``"auto:dart<N>"``
         (N DART episodes of its scripted expert), an npz file or a Minari dataset directory (see
         :mod:`sb3_dipper.common.demonstrations`)
-    :param n_demos: demonstration episodes used (the DIPPER paper: one)
+    :param n_demos: how many demonstration episodes to use, from the first (the DIPPER paper: one; default: all N of
+        ``"auto:dart<N>"``, the one of ``"auto"``, the first episode of a file or dataset)
     :param goal_conditioned_discriminator: feed the desired goal to the discriminator, ``D(s, a, g)``
     :param absorbing_states: DAC's absorbing states for episodes that end by termination (no effect on tasks that only
         end at the time limit)
@@ -382,7 +391,7 @@ class DAC(CheckedLoading, SAC):
         sde_sample_freq: int = -1,
         use_sde_at_warmup: bool = False,
         demo_path: str | None = "auto",
-        n_demos: int = 1,
+        n_demos: int | None = None,
         goal_conditioned_discriminator: bool = True,
         absorbing_states: bool = True,
         gradient_penalty_coef: float = 10.0,
@@ -406,23 +415,6 @@ class DAC(CheckedLoading, SAC):
         if env is not None:
             env = maybe_make_env(env, verbose)
             check_goal_observation_space(env.observation_space, "DAC")
-        if demo_path is None:
-            raise ValueError('DAC imitates demonstrations: pass demo_path="auto", an npz file or a Minari dataset directory')
-        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
-        n_demos = as_int("n_demos", n_demos, 1, "DAC needs at least one demonstration episode")
-        buffer_size = as_int("buffer_size", buffer_size, 1)
-        learning_starts = as_int("learning_starts", learning_starts, 0)
-        batch_size = as_int("batch_size", batch_size, 1)
-        tau = as_float("tau", tau, 0.0, 1.0, low_open=True)
-        # SB3's SAC range: gamma = 0 (a bandit) is meaningful for a flat learner.
-        gamma = as_float("gamma", gamma, 0.0, 1.0)
-        train_freq = as_train_freq(train_freq)
-        gradient_steps = as_int("gradient_steps", gradient_steps, -1, "-1: as many as environment steps collected")
-        target_update_interval = as_int("target_update_interval", target_update_interval, 1)
-        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
-        gradient_penalty_coef = as_float("gradient_penalty_coef", gradient_penalty_coef, 0.0, reason="it weighs a loss")
-        if expert_goal_relabel_prob is not None and not 0.0 <= expert_goal_relabel_prob <= 1.0:
-            raise ValueError(f"expert_goal_relabel_prob must be in [0, 1], got {expert_goal_relabel_prob}")
         super().__init__(
             policy,  # type: ignore[arg-type]
             env,  # type: ignore[arg-type]
@@ -436,7 +428,8 @@ class DAC(CheckedLoading, SAC):
             gradient_steps,
             action_noise,
             replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
+            # Copies: SB3's SAC adds use_sde to its policy_kwargs, and a caller may pass the same dict to another model.
+            replay_buffer_kwargs=dict(replay_buffer_kwargs or {}),
             optimize_memory_usage=optimize_memory_usage,
             ent_coef=ent_coef,
             target_update_interval=target_update_interval,
@@ -446,7 +439,7 @@ class DAC(CheckedLoading, SAC):
             use_sde_at_warmup=use_sde_at_warmup,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
+            policy_kwargs=dict(policy_kwargs or {}),
             verbose=verbose,
             seed=seed,
             device=device,
@@ -467,7 +460,30 @@ class DAC(CheckedLoading, SAC):
 
     # ---------------------------------------------------------------------------------------------------- set-up
 
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        if self.demo_path is None:
+            raise InvalidSetting(
+                "demo_path", 'DAC imitates demonstrations: pass demo_path="auto", an npz file or a Minari dataset directory'
+            )
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "DAC needs at least one demonstration episode")
+        self.buffer_size = as_int("buffer_size", self.buffer_size, 1)
+        self.learning_starts = as_int("learning_starts", self.learning_starts, 0)
+        self.batch_size = as_int("batch_size", self.batch_size, 1)
+        self.tau = as_float("tau", self.tau, 0.0, 1.0, low_open=True)
+        # SB3's SAC range: gamma = 0 (a bandit) is meaningful for a flat learner.
+        self.gamma = as_float("gamma", self.gamma, 0.0, 1.0)
+        self.train_freq = as_train_freq(self.train_freq)  # type: ignore[assignment]
+        self.gradient_steps = as_int("gradient_steps", self.gradient_steps, -1, "-1: as many as environment steps collected")
+        self.target_update_interval = as_int("target_update_interval", self.target_update_interval, 1)
+        self.gradient_penalty_coef = as_float(
+            "gradient_penalty_coef", self.gradient_penalty_coef, 0.0, reason="it weighs a loss"
+        )
+        self.expert_goal_relabel_prob = as_optional_float("expert_goal_relabel_prob", self.expert_goal_relabel_prob, 0.0, 1.0)
+
     def _setup_model(self) -> None:
+        self._check_settings()
         env_observation_space = self.observation_space
         network_space = self._network_observation_space()
         self._predict_only = self.env is None
@@ -511,8 +527,7 @@ class DAC(CheckedLoading, SAC):
 
     def _load_expert(self) -> ExpertTransitions:
         assert self.env is not None and isinstance(self.action_space, spaces.Box) and self.demo_path is not None
-        demonstrations = demonstrations_for(self.demo_path, self.env)
-        demonstrations = demonstrations.first_episodes(self.n_demos)
+        demonstrations = demonstrations_for(self.demo_path, self.env, self.n_demos)
         demonstrations.check_spaces(self.observation_space, self.action_space)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
         scaled_actions = self.policy.scale_action(actions)

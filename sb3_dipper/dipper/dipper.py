@@ -45,7 +45,14 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import as_float, as_int, as_optional_float, sparse_goal_reached_fn
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_choice,
+    as_float,
+    as_int,
+    as_optional_float,
+    sparse_goal_reached_fn,
+)
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
 from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
 
@@ -133,7 +140,8 @@ class DIPPER(HierarchicalAlgorithm):
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
         ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
         its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: demonstration episodes used
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -202,7 +210,7 @@ class DIPPER(HierarchicalAlgorithm):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -253,29 +261,6 @@ class DIPPER(HierarchicalAlgorithm):
             seed=seed,
             device=device,
         )
-        if value_reg not in VALUE_REGULARIZERS:
-            raise ValueError(f"Unknown value_reg {value_reg!r}: choose one of {VALUE_REGULARIZERS}")
-        if not 0.0 <= hindsight_goal_prob <= 1.0:
-            raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
-        beta = as_float("beta", beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected trajectories")
-        value_reg_coef = as_float("value_reg_coef", value_reg_coef, 0.0, reason="0 turns the value term off")
-        value_score_coef = as_float("value_score_coef", value_score_coef, 0.0, reason="0 turns the value score off")
-        value_steps = as_int("value_steps", value_steps, 0)
-        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
-        pairs_per_batch = as_int("pairs_per_batch", pairs_per_batch, 1)
-        high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
-        nll_coef = as_float("nll_coef", nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
-        label_smoothing = as_float(
-            "label_smoothing", label_smoothing, 0.0, 0.5, high_open=True, reason="0.5 makes every label a tie"
-        )
-        if reference not in REFERENCE_POLICIES:
-            raise ValueError(f"Unknown reference {reference!r}: choose one of {REFERENCE_POLICIES}")
-        planning_lookahead = as_int("planning_lookahead", planning_lookahead, 1)
-        planning_resolution = as_optional_float("planning_resolution", planning_resolution, 0.0, low_open=True)
-        planning_value_threshold = as_optional_float("planning_value_threshold", planning_value_threshold)
-        trajectory_buffer_size = as_int(
-            "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
-        )
         self.beta = beta
         self.value_reg_coef = value_reg_coef
         self.value_steps = value_steps
@@ -284,20 +269,13 @@ class DIPPER(HierarchicalAlgorithm):
         self.n_preference_pairs = n_preference_pairs
         self.pairs_per_batch = pairs_per_batch
         self.hindsight_goal_prob = hindsight_goal_prob
-        self.goal_subgoal_prob = as_float("goal_subgoal_prob", goal_subgoal_prob, 0.0, 1.0)
+        self.goal_subgoal_prob = goal_subgoal_prob
         self.high_gradient_steps = high_gradient_steps
         self.nll_coef = nll_coef
         self.label_smoothing = label_smoothing
         self.reference = reference
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
-        if planning not in PLANNING_MODES:
-            raise ValueError(f"Unknown planning {planning!r}: choose one of {PLANNING_MODES}")
-        if not plan_in_predict and planning != "subgoal":
-            raise ValueError(
-                f"plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in training "
-                f"only), got planning={planning!r}"
-            )
         self.planning = planning
         self.plan_in_predict = plan_in_predict
         self.planning_lookahead = planning_lookahead
@@ -309,6 +287,37 @@ class DIPPER(HierarchicalAlgorithm):
         self.preference_source = preference_source
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.value_reg = as_choice("value_reg", self.value_reg, VALUE_REGULARIZERS)
+        self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
+        self.beta = as_float("beta", self.beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected trajectories")
+        self.value_reg_coef = as_float("value_reg_coef", self.value_reg_coef, 0.0, reason="0 turns the value term off")
+        self.value_score_coef = as_float("value_score_coef", self.value_score_coef, 0.0, reason="0 turns the value score off")
+        self.value_steps = as_int("value_steps", self.value_steps, 0)
+        self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
+        self.pairs_per_batch = as_int("pairs_per_batch", self.pairs_per_batch, 1)
+        self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
+        self.nll_coef = as_float("nll_coef", self.nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
+        self.label_smoothing = as_float(
+            "label_smoothing", self.label_smoothing, 0.0, 0.5, high_open=True, reason="0.5 makes every label a tie"
+        )
+        self.reference = as_choice("reference", self.reference, REFERENCE_POLICIES)
+        self.goal_subgoal_prob = as_float("goal_subgoal_prob", self.goal_subgoal_prob, 0.0, 1.0)
+        self.planning_lookahead = as_int("planning_lookahead", self.planning_lookahead, 1)
+        self.planning_resolution = as_optional_float("planning_resolution", self.planning_resolution, 0.0, low_open=True)
+        self.planning_value_threshold = as_optional_float("planning_value_threshold", self.planning_value_threshold)
+        self.trajectory_buffer_size = as_int(
+            "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
+        )
+        self.planning = as_choice("planning", self.planning, PLANNING_MODES)
+        if not self.plan_in_predict and self.planning != "subgoal":
+            raise InvalidSetting(
+                "plan_in_predict",
+                "plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in "
+                f"training only), got planning={self.planning!r}",
+            )
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None

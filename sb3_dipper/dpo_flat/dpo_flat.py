@@ -210,21 +210,6 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         if env is not None:
             env = maybe_make_env(env, verbose)
             check_goal_observation_space(env.observation_space, "DPOFlat")
-        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
-        segment_length = as_int("segment_length", segment_length, 1)
-        beta = as_float("beta", beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected segments")
-        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
-        pairs_per_batch = as_int("pairs_per_batch", pairs_per_batch, 1)
-        nll_coef = as_float("nll_coef", nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
-        trajectory_buffer_size = as_int("trajectory_buffer_size", trajectory_buffer_size, 1)
-        learning_starts = as_int("learning_starts", learning_starts, 0)
-        train_freq = as_train_freq(train_freq)
-        gradient_steps = as_int("gradient_steps", gradient_steps, -1, "-1: as many as environment steps collected")
-        max_episode_steps = as_optional_int("max_episode_steps", max_episode_steps, 1, "None reads the env's time limit")
-        stats_window_size = as_int("stats_window_size", stats_window_size, 1)
-        for name, probability in (("hindsight_goal_prob", hindsight_goal_prob), ("random_action_prob", random_action_prob)):
-            if not 0.0 <= probability <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {probability}")
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]
@@ -233,7 +218,8 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
             batch_size=pairs_per_batch,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
-            policy_kwargs=policy_kwargs,
+            # A copy: the model keeps what it was given, whatever the caller does with the dict afterwards.
+            policy_kwargs=dict(policy_kwargs or {}),
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
@@ -257,7 +243,28 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         if _init_setup_model:
             self._setup_model()
 
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
+        self.segment_length = as_int("segment_length", self.segment_length, 1)
+        self.beta = as_float("beta", self.beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected segments")
+        self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
+        self.pairs_per_batch = as_int("pairs_per_batch", self.pairs_per_batch, 1)
+        # SB3's learn hands batch_size to train: the pairs of each DPO step.
+        self.batch_size = self.pairs_per_batch
+        self.nll_coef = as_float("nll_coef", self.nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
+        self.trajectory_buffer_size = as_int("trajectory_buffer_size", self.trajectory_buffer_size, 1)
+        self.learning_starts = as_int("learning_starts", self.learning_starts, 0)
+        self.train_freq = as_train_freq(self.train_freq)  # type: ignore[assignment]
+        self.gradient_steps = as_int("gradient_steps", self.gradient_steps, -1, "-1: as many as environment steps collected")
+        self.max_episode_steps = as_optional_int(
+            "max_episode_steps", self.max_episode_steps, 1, "None reads the env's time limit"
+        )
+        self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
+        self.random_action_prob = as_float("random_action_prob", self.random_action_prob, 0.0, 1.0)
+
     def _setup_model(self) -> None:
+        self._check_settings()
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         self._convert_train_freq()

@@ -4,12 +4,18 @@ from __future__ import annotations
 
 import argparse
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sb3_dipper.common.demonstrations import Demonstrations, collect_demonstrations, load_demonstrations
+from sb3_dipper.common.demonstrations import (
+    Demonstrations,
+    collect_demonstrations,
+    load_demonstrations,
+    written_without_digest,
+)
 
 
 def expert_demonstrations(
@@ -44,13 +50,22 @@ def default_demonstrations(env_id: str, n_episodes: int = 1, action_noise: float
     The expert, the seeded env and the seeded noise are deterministic, so a cached file and a fresh one hold the same
     episodes (those of ``sb3-dipper-demos --env ENV --n-episodes N --action-noise SIGMA``). The file is written under a
     temporary name and renamed into place (``Demonstrations.save``), so a process that finds it (parallel tests, zoo
-    workers) never reads half of it.
+    workers) never reads half of it. It records the sha256 of its arrays, checked whenever it is read: a cache changed
+    since (its actions scaled, a hand edit, a damaged disk) is refused, naming the file to delete. A cache written
+    before the digest was recorded is made again, with a warning.
     """
     path = default_demonstration_path(env_id, n_episodes, action_noise)
-    if not path.exists():
-        expert_demonstrations(env_id, n_episodes=n_episodes, seed=0, action_noise=action_noise).save(path)
+    uncheckable = written_without_digest(path)
+    if uncheckable:
+        warnings.warn(
+            f"{path} was cached before sb3-dipper recorded a digest of its content, so it cannot be checked: it is made "
+            "again from the scripted expert (the same episodes, made in the same way)."
+        )
+    if uncheckable or not path.exists():
+        demonstrations = expert_demonstrations(env_id, n_episodes=n_episodes, seed=0, action_noise=action_noise)
+        demonstrations.save(path, with_digest=True)
     try:
-        return load_demonstrations(path)
+        return load_demonstrations(path, verify_digest=True)
     except ValueError as error:
         raise ValueError(
             f"{error} This file is a cached scripted demonstration of {env_id}: delete {path} and it is made again "

@@ -53,7 +53,7 @@ from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_int, as_optional_int, sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_float, as_int, sparse_goal_reached_fn
 from sb3_dipper.hac.hindsight import (
     future_goal_pairs,
     goal_rewards,
@@ -225,7 +225,8 @@ class HAC(HIER):
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
         ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
         its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: demonstration episodes used
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -277,7 +278,7 @@ class HAC(HIER):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -333,10 +334,6 @@ class HAC(HIER):
             device=device,
             _init_setup_model=False,
         )
-        if not 0.0 <= subgoal_test_prob <= 1.0:
-            raise ValueError(f"subgoal_test_prob must be in [0, 1], got {subgoal_test_prob}")
-        n_hindsight_goals = as_optional_int("n_hindsight_goals", n_hindsight_goals, 0)
-        greedy_episode_interval = as_int("greedy_episode_interval", greedy_episode_interval, 1)
         self.subgoal_test_prob = subgoal_test_prob
         self.paper_compat = paper_compat
         self.n_hindsight_goals = n_hindsight_goals if n_hindsight_goals is not None else (4 if paper_compat else 3)
@@ -345,6 +342,12 @@ class HAC(HIER):
             self._setup_model()
 
     # ---------------------------------------------------------------------------------------------------- set-up
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.subgoal_test_prob = as_float("subgoal_test_prob", self.subgoal_test_prob, 0.0, 1.0)
+        self.n_hindsight_goals = as_int("n_hindsight_goals", self.n_hindsight_goals, 0)
+        self.greedy_episode_interval = as_int("greedy_episode_interval", self.greedy_episode_interval, 1)
 
     @property
     def target_q_bounds(self) -> tuple[float, float]:
@@ -368,7 +371,8 @@ class HAC(HIER):
             gamma=self.high_gamma,
             ent_coef=self.high_ent_coef,
             replay_buffer_class=DictReplayBuffer,
-            policy_kwargs=self.policy_kwargs,
+            # A copy: SB3's SAC adds use_sde to the policy_kwargs it is handed.
+            policy_kwargs=dict(self.policy_kwargs),
             device=self.device,
             target_q_bounds=self.target_q_bounds,
         )

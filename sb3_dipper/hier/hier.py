@@ -119,7 +119,8 @@ class HIER(HierarchicalAlgorithm):
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
         ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
         its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: demonstration episodes used
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -172,7 +173,7 @@ class HIER(HierarchicalAlgorithm):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -223,20 +224,23 @@ class HIER(HierarchicalAlgorithm):
             seed=seed,
             device=device,
         )
-        high_buffer_size = as_int("high_buffer_size", high_buffer_size, 1)
-        high_batch_size = as_int("high_batch_size", high_batch_size, 1)
-        high_gamma = as_float("high_gamma", high_gamma, 0.0, 1.0, low_open=True)
-        high_tau = as_float("high_tau", high_tau, 0.0, 1.0, low_open=True)
-        high_gradient_steps = as_int("high_gradient_steps", high_gradient_steps, 0)
         self.high_buffer_size = high_buffer_size
         self.high_batch_size = high_batch_size
         self.high_gamma = high_gamma
         self.high_tau = high_tau
         self.high_ent_coef = high_ent_coef
         self.high_gradient_steps = high_gradient_steps
-        self.high_replay_buffer_kwargs = {} if high_replay_buffer_kwargs is None else high_replay_buffer_kwargs
+        self.high_replay_buffer_kwargs = dict(high_replay_buffer_kwargs or {})
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.high_buffer_size = as_int("high_buffer_size", self.high_buffer_size, 1)
+        self.high_batch_size = as_int("high_batch_size", self.high_batch_size, 1)
+        self.high_gamma = as_float("high_gamma", self.high_gamma, 0.0, 1.0, low_open=True)
+        self.high_tau = as_float("high_tau", self.high_tau, 0.0, 1.0, low_open=True)
+        self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None
@@ -252,8 +256,9 @@ class HIER(HierarchicalAlgorithm):
             gamma=self.high_gamma,
             ent_coef=self.high_ent_coef,
             replay_buffer_class=HerReplayBuffer,
-            replay_buffer_kwargs=self.high_replay_buffer_kwargs,
-            policy_kwargs=self.policy_kwargs,
+            # Copies: SB3's SAC adds use_sde to the policy_kwargs it is handed.
+            replay_buffer_kwargs=dict(self.high_replay_buffer_kwargs),
+            policy_kwargs=dict(self.policy_kwargs),
             device=self.device,
         )
         self.higher._vec_normalize_env = self._vec_normalize_env

@@ -198,7 +198,8 @@ class PIPER(HIER):
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
         ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
         its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: demonstration episodes used
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -260,7 +261,7 @@ class PIPER(HIER):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -319,15 +320,6 @@ class PIPER(HIER):
             device=device,
             _init_setup_model=False,
         )
-        if not 0.0 <= hindsight_goal_prob <= 1.0:
-            raise ValueError(f"hindsight_goal_prob must be in [0, 1], got {hindsight_goal_prob}")
-        reward_batch_size = as_int("reward_batch_size", reward_batch_size, 1, "pairs per reward-model update")
-        reward_gradient_steps = as_int("reward_gradient_steps", reward_gradient_steps, 0)
-        value_reg_coef = as_float("value_reg_coef", value_reg_coef, 0.0, reason="0 turns the value score off")
-        n_preference_pairs = as_int("n_preference_pairs", n_preference_pairs, 1)
-        trajectory_buffer_size = as_int(
-            "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
-        )
         self.value_reg_coef = value_reg_coef
         self.n_preference_pairs = n_preference_pairs
         self.hindsight_goal_prob = hindsight_goal_prob
@@ -336,10 +328,21 @@ class PIPER(HIER):
         self.reward_batch_size = reward_batch_size
         self.reward_gradient_steps = reward_gradient_steps
         self.reward_learning_rate = reward_learning_rate
-        self.reward_model_kwargs = {} if reward_model_kwargs is None else reward_model_kwargs
+        self.reward_model_kwargs = dict(reward_model_kwargs or {})
         self.high_her = high_her
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
+        self.reward_batch_size = as_int("reward_batch_size", self.reward_batch_size, 1, "pairs per reward-model update")
+        self.reward_gradient_steps = as_int("reward_gradient_steps", self.reward_gradient_steps, 0)
+        self.value_reg_coef = as_float("value_reg_coef", self.value_reg_coef, 0.0, reason="0 turns the value score off")
+        self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
+        self.trajectory_buffer_size = as_int(
+            "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
+        )
 
     def _setup_high_level(self) -> None:
         super()._setup_high_level()

@@ -176,6 +176,11 @@ class RAPS(HIER):
             self.subgoal_space = primitive_space(self.primitives, target)
         super()._setup_model()
 
+    def _env_declared_subgoal_space(self) -> SubgoalSpace:
+        """The env's space the primitives' arguments were built for (their ``target``)."""
+        assert isinstance(self.subgoal_space, PrimitiveSpace) and self.subgoal_space.target is not None
+        return self.subgoal_space.target
+
     def _setup_low_level(self, demonstrations: Demonstrations | None = None) -> None:
         assert self.primitives is not None, "a saved model always carries its primitives"
         self.low_level = self.lower = ScriptedLowLevel(self.primitives)

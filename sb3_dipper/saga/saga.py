@@ -126,7 +126,8 @@ class SAGA(HIER):
     :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
         ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
         its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: demonstration episodes used
+    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
+        one of ``"auto"``, the first episode of a file or dataset)
     :param demo_share: fraction of each lower batch drawn from the demonstrations
     :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
     :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
@@ -182,7 +183,7 @@ class SAGA(HIER):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         demo_path: str | None = None,
-        n_demos: int = 1,
+        n_demos: int | None = None,
         demo_share: float = 0.125,
         bc_coef: float = 0.0078,
         rl_coef: float = 1e-3,
@@ -241,13 +242,18 @@ class SAGA(HIER):
             device=device,
             _init_setup_model=False,
         )
-        adversarial_coef = as_float("adversarial_coef", adversarial_coef, 0.0, reason="it weighs a loss; 0 turns it off")
         self.adversarial_coef = adversarial_coef
         self.state_conditioned = state_conditioned
         self.discriminator_learning_rate = discriminator_learning_rate
-        self.discriminator_kwargs = {} if discriminator_kwargs is None else discriminator_kwargs
+        self.discriminator_kwargs = dict(discriminator_kwargs or {})
         if _init_setup_model:
             self._setup_model()
+
+    def _check_settings(self) -> None:
+        super()._check_settings()
+        self.adversarial_coef = as_float(
+            "adversarial_coef", self.adversarial_coef, 0.0, reason="it weighs a loss; 0 turns it off"
+        )
 
     def _setup_high_level(self) -> None:
         super()._setup_high_level()
