@@ -24,7 +24,8 @@ ENV_ID = "FetchPickAndPlaceFixed-v0"
 
 
 def tiny_pick_and_place_model() -> DIPPER:
-    env = make_vec_env(ENV_ID, n_envs=1, seed=0)
+    # The zoo entries' episodes: 7 options of 7 steps.
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs=dict(max_episode_steps=49))
     return DIPPER(
         "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
         n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
