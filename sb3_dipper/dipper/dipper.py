@@ -398,19 +398,11 @@ class DIPPER(HierarchicalAlgorithm):
         self.last_planned &= ~self.last_random_subgoals  # a random subgoal replaced the planner's waypoint
         if self.goal_subgoal_prob > 0.0 and self.num_timesteps >= self.learning_starts:
             goal_rows = (self._rng.random(self.n_envs) < self.goal_subgoal_prob) & ~self.last_random_subgoals
-            actions[goal_rows] = self._goals_as_subgoals(observation)[goal_rows]
+            actions[goal_rows] = self._subgoal_actions(observation["desired_goal"])[goal_rows]
             self.last_planned &= ~goal_rows
         if self.planning == "subgoal" and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
-
-    def _goals_as_subgoals(self, observation: DictObs) -> np.ndarray:
-        """Each row's goal as a higher-level action (unit coordinates of the subgoal space)."""
-        assert self.subgoal_space is not None
-        desired = observation["desired_goal"]
-        if self.low_normalizer is not None:
-            desired = self.low_normalizer.unnormalize_goal(desired, "desired_goal")
-        return self.subgoal_space.to_unit(self.subgoal_space.project(desired)).astype(np.float32)
 
     def _plan(self, observation: DictObs, graph: SubgoalGraph) -> Plan:
         """The graph's waypoints toward each row's goal, in the subgoal space's world units, and the rows it planned."""
