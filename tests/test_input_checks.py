@@ -269,7 +269,7 @@ def random_pairs(model, n_pairs: int = 4) -> TrajectoryPairs:
 
 def test_the_score_value_term_has_its_own_coefficient_at_pipers_scale(env):
     model = tiny_model(DIPPER, env, value_reg="score", value_reg_coef=0.1)
-    assert model.value_score_coef == 1e-6 and model._labeler.value_score == model._pair_value_score
+    assert model.value_score_coef == 1e-6 and model.preference_pipeline.labeler.value_score == model._pair_value_score
     pairs = random_pairs(model)
     th.manual_seed(0)  # the lower value is taken at a sampled lower action
     score = model._pair_value_score(pairs)

@@ -57,6 +57,7 @@ from sb3_dipper.common.low_level import (
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
+from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import as_float, as_int, as_optional_int, check_goal_observation_space
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
@@ -294,6 +295,17 @@ class HierarchicalAlgorithm(CheckedLoading):
         """T, the most higher-level decisions in one base episode."""
         assert self.max_episode_steps is not None
         return math.ceil(self.max_episode_steps / self.option_steps)
+
+    def _higher_level_trajectory_buffer(self, capacity: int) -> TrajectoryBuffer:
+        """A store of ``capacity`` whole higher-level trajectories: :attr:`high_steps` options of subgoal actions."""
+        assert self.subgoal_space is not None
+        return TrajectoryBuffer(
+            capacity,
+            self.high_steps,
+            self.observation_space,  # type: ignore[arg-type]
+            self.subgoal_space.dim,
+            self.n_envs,
+        )
 
     @staticmethod
     def _normalizable(vec_normalize: VecNormalize | None) -> VecNormalize:

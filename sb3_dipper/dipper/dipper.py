@@ -29,25 +29,17 @@ from sb3_dipper.common.losses import (
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
 from sb3_dipper.common.planning import Plan, SubgoalGraph
+from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
 from sb3_dipper.common.preferences import (
-    PreferenceDataset,
-    PreferenceSource,
-    PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
-    add_new_labels,
+    TrajectoryPairSampler,
     flat_pair_observations,
-    pairs_due,
     progress_labels,
-    read_preference_data,
-    sample_trajectory_pairs,
-    save_preference_data,
-    truncate_at_first_arrival,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import as_float, as_int, as_optional_float, sparse_goal_reached_fn
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
-from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
+from sb3_dipper.labelling.sources import PreferenceSourceSpec
 
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
@@ -58,7 +50,7 @@ REFERENCE_POLICIES = ("uniform", "averaged")
 GRAPH_REBUILD_TRAJECTORIES = 4
 
 
-class DIPPER(HierarchicalAlgorithm):
+class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     """DIPPER (Singh et al., ICLR 2026): the higher level learns subgoals from preferences by DPO, the lower by SAC+HER.
 
     The higher level is a squashed-Gaussian policy over subgoals trained only by the DIPPER loss (Eq. 9,
@@ -310,14 +302,15 @@ class DIPPER(HierarchicalAlgorithm):
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.subgoal_space.unit_box, self.lr_schedule, **self.policy_kwargs
         ).to(self.device)
-        self.trajectory_buffer = TrajectoryBuffer(
-            self.trajectory_buffer_size,
-            self.high_steps,
-            self.observation_space,  # type: ignore[arg-type]
-            self.subgoal_space.dim,
-            self.n_envs,
+        goal_reached = sparse_goal_reached_fn(self.env) if self.env is not None else None
+        value_score = self._pair_value_score if self.value_reg == "score" else None
+        truncate_at = goal_reached if self.truncate_at_goal else None
+        self.preference_pipeline = PreferencePipeline(
+            self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
+            self.n_preference_pairs,
+            TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space, truncate_at),
+            self._preference_labeler(self.subgoal_space, value_score, goal_reached),
         )
-        self.preferences = PreferenceDataset(self.n_preference_pairs)
         if self.planning != "off" and self.subgoal_graph is None:
             self.subgoal_graph = SubgoalGraph(self.subgoal_space, self.planning_resolution or self.subgoal_space.threshold)
         self._trajectories_since_graph = 0
@@ -326,14 +319,8 @@ class DIPPER(HierarchicalAlgorithm):
             raise ValueError("reference='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 (e.g. 0.05)")
         # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
-        self._labeler: PreferenceSource | None = None
         # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
         self.last_planned = np.zeros(self.n_envs, dtype=bool)
-        if self.env is not None:
-            self._goal_reached = sparse_goal_reached_fn(self.env)
-            value_score = self._pair_value_score if self.value_reg == "score" else None
-            script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
-            self._labeler = preference_source_from(self.preference_source, script, self.env, self.subgoal_space, self.seed)
 
     def _predict_plans(self) -> bool:
         return self.subgoal_graph is not None and self.plan_in_predict
@@ -446,7 +433,9 @@ class DIPPER(HierarchicalAlgorithm):
     def train(self) -> None:
         """Lower SAC updates (which also move V^L toward V^L_m), new labels, then the higher-level DIPPER updates."""
         self._train_low_level()
-        self._label_new_pairs()
+        new_pairs = self.preference_pipeline.label_new_pairs(self.num_timesteps, self._total_timesteps, self._rng)
+        if new_pairs is not None:
+            self._record_label_diagnostics(new_pairs)
         if len(self.preferences) == 0:
             return
         self._train_high_level()
@@ -504,23 +493,6 @@ class DIPPER(HierarchicalAlgorithm):
             self.logger.record("train/high_pref_accuracy", float(np.mean(accuracies)))
         if value_gaps:
             self.logger.record("train/high_value_gap", float(np.mean(value_gaps)))
-
-    def _label_new_pairs(self) -> None:
-        """Label new pairs so the dataset grows in step with training, up to the label budget."""
-        assert self.subgoal_space is not None and self._labeler is not None
-        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
-        add_new_labels(self.preferences, self._labeler, None)
-        n_new = pairs_due(
-            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
-        )
-        if n_new == 0 or len(self.trajectory_buffer) < 2:
-            return
-        pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
-        if self.truncate_at_goal:
-            pairs = truncate_at_first_arrival(pairs, self._goal_reached)
-        pairs.labels = self._labeler.label(pairs)
-        self._record_label_diagnostics(pairs)
-        add_new_labels(self.preferences, self._labeler, pairs)
 
     def _record_label_diagnostics(self, pairs: TrajectoryPairs) -> None:
         """What the new labels carry, and how the policy does on pairs it has not trained on yet (logged as means over
@@ -623,14 +595,7 @@ class DIPPER(HierarchicalAlgorithm):
     # ---------------------------------------------------------------------------------------------------- saving
 
     def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "trajectory_buffer",
-            "preferences",
-            "_labeler",
-            "_goal_reached",
-            "last_planned",
-        ]
+        return [*super()._excluded_save_params(), "last_planned"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -651,17 +616,7 @@ class DIPPER(HierarchicalAlgorithm):
 
     def _save_high_level_data(self, path: str) -> None:
         """Trajectories and labelled pairs, as npz (read back without pickle)."""
-        save_preference_data(sibling_path(path, ".high.npz"), self.trajectory_buffer, self.preferences)
+        self.preference_pipeline.save(sibling_path(path, ".high.npz"))
 
     def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
-        trajectories, preferences = read_preference_data(
-            sibling_path(path, ".high.npz"), self.trajectory_buffer, self.n_preference_pairs
-        )
-
-        def install() -> None:
-            self.trajectory_buffer.load_state_dict(trajectories)
-            self.preferences = preferences
-            if self._labeler is not None:
-                self._labeler.dataset_restored(self.preferences.handed_ids)
-
-        return install
+        return self.preference_pipeline.read(sibling_path(path, ".high.npz"))
