@@ -347,4 +347,4 @@ def test_the_exported_policy_keeps_the_normalisation_statistics():
 
 def test_a_planning_model_refuses_to_export(maze_env):
     with pytest.raises(NotImplementedError, match=r"model\.predict"):
-        tiny_model(DIPPER, maze_env, planning="subgoal").export_policy()
+        tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal")).export_policy()

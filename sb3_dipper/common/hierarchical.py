@@ -439,14 +439,15 @@ class HierarchicalAlgorithm(CheckedLoading):
         ``VecNormalize`` statistics. Its ``predict(obs, state, episode_start, deterministic)`` gives this model's
         actions; later training does not change it.
 
-        :raises NotImplementedError: for a model whose :meth:`predict` plans (DIPPER with ``planning != "off"``, unless
-            ``plan_in_predict=False``): its waypoints come from the subgoal graph, which is not exported; use :meth:`predict`
+        :raises NotImplementedError: for a model whose :meth:`predict` plans (DIPPER with a planner, unless its
+            ``in_predict`` is ``False``): its waypoints come from the subgoal graph, which is not exported; use
+            :meth:`predict`
         """
         if self._predict_plans():
             raise NotImplementedError(
                 f"This {type(self).__name__} plans over its subgoal graph, which export_policy does not export: "
-                "act with model.predict, export a model trained with planning='off', or (planning='subgoal') set "
-                "model.plan_in_predict = False to export the preference-trained policy alone"
+                "act with model.predict, export a model trained without a planner, or (planner mode 'subgoal') set "
+                "model.planner.in_predict = False to export the preference-trained policy alone"
             )
         self._refresh_low_normalizer()
         policy = self._hierarchical_policy(PolicyHighLevel(self.policy), self._acting_low_level())

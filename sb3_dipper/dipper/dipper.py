@@ -8,6 +8,7 @@ authors' PIPER code (https://github.com/Utsavz/piper), from which the preference
 from __future__ import annotations
 
 import copy
+import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
@@ -28,7 +29,9 @@ from sb3_dipper.common.losses import (
 )
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
-from sb3_dipper.common.planning import Plan, SubgoalGraph
+from sb3_dipper.common.planning import GRAPH_REBUILD_TRAJECTORIES as GRAPH_REBUILD_TRAJECTORIES  # public here first
+from sb3_dipper.common.planning import PLANNING_MODES as PLANNING_MODES  # public here first
+from sb3_dipper.common.planning import SubgoalPlanner
 from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
 from sb3_dipper.common.preferences import (
     TrajectoryPairs,
@@ -37,17 +40,71 @@ from sb3_dipper.common.preferences import (
     progress_labels,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_float, as_int, as_optional_float, sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_float, as_int, check_keyword_arguments, sparse_goal_reached_fn
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
 from sb3_dipper.labelling.sources import PreferenceSourceSpec
 
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
-PLANNING_MODES = ("off", "subgoal", "waypoint")
 REFERENCE_POLICIES = ("uniform", "averaged")
-# Rebuild the planning graph after this many new trajectories (a rebuild takes milliseconds).
-GRAPH_REBUILD_TRAJECTORIES = 4
+# DIPPER's planning parameters before planner_kwargs, each with the planner_kwargs key (SubgoalPlanner parameter) it is.
+DEPRECATED_PLANNING_PARAMETERS = {
+    "planning": "mode",
+    "plan_in_predict": "in_predict",
+    "planning_lookahead": "lookahead",
+    "planning_resolution": "resolution",
+    "planning_value_threshold": "value_threshold",
+}
+
+
+def planner_kwargs_with(planner_kwargs: dict[str, Any] | None, deprecated: dict[str, Any]) -> dict[str, Any]:
+    """``planner_kwargs`` with the deprecated planning parameters that were given (not ``None``) in place of their keys,
+    with a ``DeprecationWarning`` naming ``planner_kwargs``.
+
+    :param planner_kwargs: DIPPER's ``planner_kwargs``
+    :param deprecated: the deprecated parameters by name (:data:`DEPRECATED_PLANNING_PARAMETERS`), ``None`` where not given
+    """
+    kwargs = dict(planner_kwargs or {})
+    given = {name: value for name, value in deprecated.items() if value is not None}
+    if given:
+        replacement = {DEPRECATED_PLANNING_PARAMETERS[name]: value for name, value in given.items()}
+        warnings.warn(
+            f"DIPPER's {', '.join(given)} {'is' if len(given) == 1 else 'are'} deprecated: pass "
+            f"planner_kwargs={replacement!r} instead (the keys of sb3_dipper.common.planning.SubgoalPlanner)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        kwargs.update(replacement)
+    return kwargs
+
+
+class _PlannerSetting:
+    """A DIPPER attribute that the planner holds now (``model.planner``); reading or setting it warns.
+
+    :param planner_attribute: the planner's attribute
+    """
+
+    def __init__(self, planner_attribute: str) -> None:
+        self.planner_attribute = planner_attribute
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def _warn(self) -> None:
+        warnings.warn(
+            f"DIPPER.{self.name} is deprecated: use model.planner.{self.planner_attribute}", DeprecationWarning, stacklevel=3
+        )
+
+    def __get__(self, model: DIPPER | None, owner: type | None = None) -> Any:
+        if model is None:
+            return self
+        self._warn()
+        return getattr(model.planner, self.planner_attribute)
+
+    def __set__(self, model: DIPPER, value: Any) -> None:
+        self._warn()
+        setattr(model.planner, self.planner_attribute, value)
 
 
 class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
@@ -88,21 +145,25 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         keeps each update near the last; needs ``policy_kwargs`` ``acting_tau`` below 1)
     :param hindsight_actions: train on the subgoal each option actually reached instead of the one proposed
     :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
-    :param planning: planning over achieved states (:class:`~sb3_dipper.common.planning.SubgoalGraph`): ``"off"`` (the
-        paper), ``"subgoal"`` (where the graph knows a path to the goal, propose the waypoint on it; elsewhere the
-        policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal).
-        The planner says per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`): a row is planned
-        where the graph knows a path from the current voxel to the goal's, and only there does its waypoint replace the
-        policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's (random subgoals
-        excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs' last subgoal was
-        the planner's
-    :param plan_in_predict: whether :meth:`predict` (evaluation, deployment) plans as training does. ``False`` (only
-        with ``planning="subgoal"``): the planner steers the training proposals, and the preference-trained policy
-        proposes every subgoal when the model is used; such a model can be exported (:meth:`export_policy`)
-    :param planning_lookahead: how many options along the shortest known path the waypoint lies
-    :param planning_resolution: voxel size of the planning graph (default: the subgoal threshold)
-    :param planning_value_threshold: keep a graph edge only if the lower level's value ``min_i Q_i(s, g, mu(s, g))`` of
-        reaching its target voxel from the start of some option that took it is at least this (``None``: keep all)
+    :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
+        :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
+        ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
+        elsewhere the policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint
+        instead of the goal); ``lookahead`` (options along the shortest known path to the waypoint), ``resolution``
+        (voxel size of the graph; default: the subgoal threshold), ``value_threshold`` (keep a graph edge only if the
+        lower level's value ``min_i Q_i(s, g, mu(s, g))`` of reaching its target voxel from the start of some option
+        that took it is at least this) and ``in_predict`` (``False``, only with ``"subgoal"``: the planner steers the
+        training proposals, and the preference-trained policy proposes every subgoal in :meth:`predict`; such a model
+        can be exported, :meth:`export_policy`). For example ``dict(mode="subgoal", lookahead=2)``. The planner says
+        per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`), and only there does its waypoint
+        replace the policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's
+        (random subgoals excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs'
+        last subgoal was the planner's
+    :param planning: deprecated, ``planner_kwargs`` ``mode``
+    :param plan_in_predict: deprecated, ``planner_kwargs`` ``in_predict``
+    :param planning_lookahead: deprecated, ``planner_kwargs`` ``lookahead``
+    :param planning_resolution: deprecated, ``planner_kwargs`` ``resolution``
+    :param planning_value_threshold: deprecated, ``planner_kwargs`` ``value_threshold``
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
     :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
         ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
@@ -144,6 +205,14 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
     policy: DIPPERPolicy
+    # Saved with the model (load() restores it before _setup_model), with its graph, so that a loaded model plans as it did.
+    planner: SubgoalPlanner
+    planning = _PlannerSetting("mode")
+    plan_in_predict = _PlannerSetting("in_predict")
+    planning_lookahead = _PlannerSetting("lookahead")
+    planning_resolution = _PlannerSetting("resolution")
+    planning_value_threshold = _PlannerSetting("value_threshold")
+    subgoal_graph = _PlannerSetting("graph")
     # The lower update count when the lower critic was last copied into the snapshot V^L_m (saved with the model, as
     # the snapshot is), so that a loaded model refreshes the snapshot on the schedule it had.
     _value_snapshot_updates: int = 0
@@ -170,9 +239,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         reference: str = "uniform",
         hindsight_actions: bool = False,
         truncate_at_goal: bool = False,
-        planning: str = "off",
-        plan_in_predict: bool = True,
-        planning_lookahead: int = 1,
+        planner_kwargs: dict[str, Any] | None = None,
+        planning: str | None = None,
+        plan_in_predict: bool | None = None,
+        planning_lookahead: int | None = None,
         planning_resolution: float | None = None,
         planning_value_threshold: float | None = None,
         trajectory_buffer_size: int = 5000,
@@ -258,9 +328,18 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         )
         if reference not in REFERENCE_POLICIES:
             raise ValueError(f"Unknown reference {reference!r}: choose one of {REFERENCE_POLICIES}")
-        planning_lookahead = as_int("planning_lookahead", planning_lookahead, 1)
-        planning_resolution = as_optional_float("planning_resolution", planning_resolution, 0.0, low_open=True)
-        planning_value_threshold = as_optional_float("planning_value_threshold", planning_value_threshold)
+        planner_kwargs = planner_kwargs_with(
+            planner_kwargs,
+            dict(
+                planning=planning,
+                plan_in_predict=plan_in_predict,
+                planning_lookahead=planning_lookahead,
+                planning_resolution=planning_resolution,
+                planning_value_threshold=planning_value_threshold,
+            ),
+        )
+        check_keyword_arguments(SubgoalPlanner, planner_kwargs, source="planner_kwargs")
+        planner = SubgoalPlanner(**planner_kwargs)
         trajectory_buffer_size = as_int(
             "trajectory_buffer_size", trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
         )
@@ -278,20 +357,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.reference = reference
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
-        if planning not in PLANNING_MODES:
-            raise ValueError(f"Unknown planning {planning!r}: choose one of {PLANNING_MODES}")
-        if not plan_in_predict and planning != "subgoal":
-            raise ValueError(
-                f"plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in training "
-                f"only), got planning={planning!r}"
-            )
-        self.planning = planning
-        self.plan_in_predict = plan_in_predict
-        self.planning_lookahead = planning_lookahead
-        self.planning_resolution = planning_resolution
-        self.planning_value_threshold = planning_value_threshold
-        # Saved with the model (load() restores it before _setup_model), so a loaded model plans as it did.
-        self.subgoal_graph: SubgoalGraph | None = None
+        self.planner_kwargs = planner_kwargs
+        self.planner = planner
         self.trajectory_buffer_size = trajectory_buffer_size
         self.preference_source = preference_source
         if _init_setup_model:
@@ -311,9 +378,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space, truncate_at),
             self._preference_labeler(self.subgoal_space, value_score, goal_reached),
         )
-        if self.planning != "off" and self.subgoal_graph is None:
-            self.subgoal_graph = SubgoalGraph(self.subgoal_space, self.planning_resolution or self.subgoal_space.threshold)
-        self._trajectories_since_graph = 0
+        self._adopt_planning_attributes()
+        self.planner.setup(self.subgoal_space)
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
         if self.reference == "averaged" and self.policy.averaged_actor is None:
             raise ValueError("reference='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 (e.g. 0.05)")
@@ -322,11 +388,24 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
         self.last_planned = np.zeros(self.n_envs, dtype=bool)
 
+    def _adopt_planning_attributes(self) -> None:
+        """A model saved before ``planner_kwargs`` (or loaded with a deprecated planning parameter) holds the planning
+        settings, and the graph, as attributes of its own: the planner takes them over."""
+        legacy_names = (*DEPRECATED_PLANNING_PARAMETERS, "subgoal_graph", "_trajectories_since_graph")
+        legacy = {name: self.__dict__.pop(name) for name in legacy_names if name in self.__dict__}
+        if not legacy:
+            return
+        settings = {key: legacy[name] for name, key in DEPRECATED_PLANNING_PARAMETERS.items() if name in legacy}
+        graph = legacy.get("subgoal_graph", self.planner.graph)
+        self.planner_kwargs = {**self.planner_kwargs, **settings}
+        self.planner = SubgoalPlanner(**self.planner_kwargs)
+        self.planner.graph = graph
+
     def _predict_plans(self) -> bool:
-        return self.subgoal_graph is not None and self.plan_in_predict
+        return self.planner.plans_in_predict
 
     def _option_metric_keys(self) -> tuple[str, ...]:
-        planned = ("planned_share",) if self.planning == "subgoal" else ()
+        planned = ("planned_share",) if self.planner.proposes_subgoals else ()
         return (*super()._option_metric_keys(), *planned)
 
     def learn(
@@ -343,60 +422,35 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     # ---------------------------------------------------------------------------------------------------- acting
 
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
-        return self._proposals(observation, deterministic, self.subgoal_graph if self.plan_in_predict else None)
+        return self._proposals(observation, deterministic, training=False)
 
     def _collecting_high_level_actions(self, observation: DictObs) -> np.ndarray:
-        return self._proposals(observation, deterministic=False, graph=self.subgoal_graph)
+        return self._proposals(observation, deterministic=False, training=True)
 
-    def _proposals(self, observation: DictObs, deterministic: bool, graph: SubgoalGraph | None) -> np.ndarray:
-        """The policy's subgoals; with ``planning="subgoal"``, the planner's waypoints in the rows ``graph`` planned."""
-        plan = self._plan(observation, graph) if graph is not None else None
-        policy_input = observation
-        if plan is not None and self.planning == "waypoint":
-            policy_input = self._with_waypoints_as_goals(observation, plan)
-        actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
-        actions = np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
-        self.last_planned = np.zeros(actions.shape[0], dtype=bool)
-        if plan is not None and self.planning == "subgoal":
-            assert self.subgoal_space is not None
-            self.last_planned = plan.planned
-            actions[plan.planned] = self.subgoal_space.to_unit(plan.waypoints[plan.planned])
+    def _proposals(self, observation: DictObs, deterministic: bool, training: bool) -> np.ndarray:
+        """The policy's subgoals, steered by the planner (:meth:`~sb3_dipper.common.planning.SubgoalPlanner.propose`);
+        :attr:`last_planned` records which rows' subgoal is the planner's waypoint."""
+        action_dim = self.policy.action_space.shape[0]  # type: ignore[index]
+
+        def policy_proposals(policy_input: DictObs) -> np.ndarray:
+            actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
+            return np.asarray(actions, dtype=np.float32).reshape(-1, action_dim)
+
+        actions, self.last_planned = self.planner.propose(observation, policy_proposals, self.low_normalizer, training)
         return actions
 
     def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
         self.last_planned = np.zeros(self.n_envs, dtype=bool)  # the warm-up's uniform subgoals are nobody's plan
         actions = super()._training_high_level_actions(observation)
         self.last_planned &= ~self.last_random_subgoals  # a random subgoal replaced the planner's waypoint
-        if self.planning == "subgoal" and self.num_timesteps >= self.learning_starts:
+        if self.planner.proposes_subgoals and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
 
-    def _plan(self, observation: DictObs, graph: SubgoalGraph) -> Plan:
-        """The graph's waypoints toward each row's goal, in the subgoal space's world units, and the rows it planned."""
+    def _lower_level_value(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
+        """The lower level's value ``min_i Q_i(s, g, mu(s, g))`` of reaching each target (world units) from each start
+        state, which the planner's ``value_threshold`` compares."""
         assert self.subgoal_space is not None
-        achieved, desired = observation["achieved_goal"], observation["desired_goal"]
-        if self.low_normalizer is not None:
-            achieved = self.low_normalizer.unnormalize_goal(achieved, "achieved_goal")
-            desired = self.low_normalizer.unnormalize_goal(desired, "desired_goal")
-        space = self.subgoal_space
-        return graph.plan(space.project(achieved), space.project(desired), self.planning_lookahead)
-
-    def _with_waypoints_as_goals(self, observation: DictObs, plan: Plan) -> DictObs:
-        """The observation with each planned row's goal replaced by its waypoint (``planning="waypoint"``); the other
-        rows are the observation's own."""
-        assert self.subgoal_space is not None
-        space, normalizer, rows = self.subgoal_space, self.low_normalizer, plan.planned
-        if not rows.any():
-            return observation
-        goals = np.array(observation["desired_goal"], copy=True)
-        planned = goals[rows] if normalizer is None else normalizer.unnormalize_goal(goals[rows], "desired_goal")
-        planned[..., list(space.indices) if space.indices is not None else slice(None)] = plan.waypoints[rows]
-        goals[rows] = planned if normalizer is None else normalizer.normalize_goal(planned, "desired_goal")
-        return {**observation, "desired_goal": goals}
-
-    def _reachable_by_lower_level(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
-        """Whether the lower level's value of reaching each target from each start state passes the threshold."""
-        assert self.subgoal_space is not None and self.planning_value_threshold is not None
         values = []
         with th.no_grad():
             for chunk in range(0, targets.shape[0], 4096):
@@ -405,7 +459,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 low_obs = self.low_level.tensor_obs(low_level_observation(batch, targets[rows], self.subgoal_space))
                 actions = self.lower.actor(low_obs, deterministic=True)
                 values.append(th.cat(self.lower.critic(low_obs, actions), dim=1).min(dim=1).values.cpu().numpy())
-        return np.concatenate(values) >= self.planning_value_threshold
+        return np.concatenate(values)
 
     def _store_option(
         self,
@@ -418,11 +472,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     ) -> None:
         assert self.option_env is not None and self.option_env.reached_obs is not None
         self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
-        self._trajectories_since_graph += int(np.sum(dones))
-        if self.subgoal_graph is not None and self._trajectories_since_graph >= GRAPH_REBUILD_TRAJECTORIES:
-            edge_check = self._reachable_by_lower_level if self.planning_value_threshold is not None else None
-            self.subgoal_graph.rebuild(self.trajectory_buffer, edge_check)
-            self._trajectories_since_graph = 0
+        self.planner.trajectories_finished(int(np.sum(dones)), self.trajectory_buffer, self._lower_level_value)
 
     def _end_open_episodes(self) -> None:
         super()._end_open_episodes()
