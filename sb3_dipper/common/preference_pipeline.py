@@ -17,21 +17,16 @@ import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_dipper.common.preferences import (
-    GoalReachedFn,
     PairSampler,
     PreferenceDataset,
     PreferenceSource,
-    PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
     add_new_labels,
     pairs_due,
     read_preference_data,
     save_preference_data,
 )
-from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import sparse_goal_reached_fn
-from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
 
 
 class PreferencePipeline:
@@ -107,31 +102,13 @@ class PreferencePipeline:
 class PreferenceLearner(BaseAlgorithm):
     """Base of the algorithms that learn from labelled pairs through a :class:`PreferencePipeline`.
 
-    The pipeline, ``preference_pipeline``, is built with the model's networks (``_setup_model``) and is not part of the
-    saved model: ``save_replay_buffer`` saves it. Its trajectory buffer and dataset are also ``trajectory_buffer`` and
-    ``preferences``.
+    The pipeline, ``preference_pipeline``, is built with the model's networks (``_setup_model``), its labeller from the
+    algorithm's ``preference_source`` (:func:`~sb3_dipper.labelling.preference_labeler`), and it is not part
+    of the saved model: ``save_replay_buffer`` saves it. Its trajectory buffer and dataset are also
+    ``trajectory_buffer`` and ``preferences``.
     """
 
     preference_pipeline: PreferencePipeline
-    preference_source: PreferenceSourceSpec
-
-    def _preference_labeler(
-        self,
-        subgoal_space: SubgoalSpace | None,
-        value_score: Callable[[TrajectoryPairs], np.ndarray] | None = None,
-        goal_reached: GoalReachedFn | None = None,
-    ) -> PreferenceSource | None:
-        """The labeller ``preference_source`` describes, with the primitive-in-the-loop labeller as its script; ``None``
-        for a model without an env, which labels nothing until it gets one.
-
-        :param subgoal_space: the model's subgoal space (``None``: pairs of primitive actions), recorded for the page
-        :param value_score: a term added to the primitive-in-the-loop score (the lower value), ``(2, B)`` per pair
-        :param goal_reached: the env's sparse goal test, if the model has it already (default: read from the env)
-        """
-        if self.env is None:
-            return None
-        script = PrimitiveInTheLoopLabeler(goal_reached or sparse_goal_reached_fn(self.env), value_score)
-        return preference_source_from(self.preference_source, script, self.env, subgoal_space, self.seed)
 
     @property
     def trajectory_buffer(self) -> TrajectoryBuffer:

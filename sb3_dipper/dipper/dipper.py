@@ -42,7 +42,7 @@ from sb3_dipper.common.preferences import (
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import as_float, as_int, check_keyword_arguments, sparse_goal_reached_fn
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
-from sb3_dipper.labelling.sources import PreferenceSourceSpec
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
@@ -369,14 +369,20 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.subgoal_space.unit_box, self.lr_schedule, **self.policy_kwargs
         ).to(self.device)
-        goal_reached = sparse_goal_reached_fn(self.env) if self.env is not None else None
-        value_score = self._pair_value_score if self.value_reg == "score" else None
-        truncate_at = goal_reached if self.truncate_at_goal else None
+        goal_reached, labeler = None, None
+        if self.env is not None:  # a model without an env labels nothing until it gets one
+            goal_reached = sparse_goal_reached_fn(self.env)
+            value_score = self._pair_value_score if self.value_reg == "score" else None
+            labeler = preference_labeler(
+                self.preference_source, self.env, self.subgoal_space, self.seed, value_score, goal_reached
+            )
         self.preference_pipeline = PreferencePipeline(
             self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
             self.n_preference_pairs,
-            TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space, truncate_at),
-            self._preference_labeler(self.subgoal_space, value_score, goal_reached),
+            TrajectoryPairSampler(
+                self.hindsight_goal_prob, self.subgoal_space, goal_reached if self.truncate_at_goal else None
+            ),
+            labeler,
         )
         self._adopt_planning_attributes()
         self.planner.setup(self.subgoal_space)

@@ -41,13 +41,13 @@ from sb3_dipper.common.hierarchical import sibling_path
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.losses import dipper_loss, preference_accuracy, preferred_nll, tie_share, uniform_log_prob
 from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
-from sb3_dipper.common.preferences import SegmentPairSampler, TrajectoryPairs, flat_pair_observations
+from sb3_dipper.common.preferences import PreferenceSource, SegmentPairSampler, TrajectoryPairs, flat_pair_observations
 from sb3_dipper.common.preferences import sample_segment_pairs as sample_segment_pairs  # public here first
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import as_float, as_int, as_optional_int, as_train_freq, check_goal_observation_space
 from sb3_dipper.dipper.policies import DIPPERPolicy
 from sb3_dipper.dpo_flat.policies import MlpPolicy, MultiInputPolicy
-from sb3_dipper.labelling.sources import PreferenceSourceSpec
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 
 SelfDPOFlat = TypeVar("SelfDPOFlat", bound="DPOFlat")
 
@@ -261,8 +261,12 @@ class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
             # The env is about to be reset: an episode a callback interrupted must not run on into the new one.
             self.trajectory_buffer.discard_open()
         if self.preference_pipeline.labeler is None:
-            self.preference_pipeline.labeler = self._preference_labeler(subgoal_space=None)
+            self.preference_pipeline.labeler = self._new_labeler()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    def _new_labeler(self) -> PreferenceSource:
+        assert self.env is not None
+        return preference_labeler(self.preference_source, self.env, None, self.seed)
 
     # ---------------------------------------------------------------------------------------------------- acting
 
@@ -363,8 +367,8 @@ class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
         """
         path = replay_buffer_path(path, "DPOFlat.load_replay_buffer", reading=True)
         self._ensure_full_trajectory_buffer()
-        if self.preference_pipeline.labeler is None:
-            self.preference_pipeline.labeler = self._preference_labeler(subgoal_space=None)
+        if self.preference_pipeline.labeler is None and self.env is not None:
+            self.preference_pipeline.labeler = self._new_labeler()
         self.preference_pipeline.load(sibling_path(str(path), ".npz"))
 
 

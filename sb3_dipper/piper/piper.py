@@ -52,7 +52,7 @@ from sb3_dipper.common.preferences import TrajectoryPairs, TrajectoryPairSampler
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import as_float, as_int
 from sb3_dipper.hier.hier import HIER
-from sb3_dipper.labelling.sources import PreferenceSourceSpec
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 from sb3_dipper.piper.policies import RewardModel
 
 SelfPIPER = TypeVar("SelfPIPER", bound="PIPER")
@@ -340,12 +340,15 @@ class PIPER(PreferenceLearner, HIER):
             **self.reward_model_kwargs,
         ).to(self.device)
         self.higher.reward_model = self.reward_model
-        value_score = self._pair_value_score if self.value_reg_coef != 0.0 else None
+        labeler = None  # a model without an env labels nothing until it gets one
+        if self.env is not None:
+            value_score = self._pair_value_score if self.value_reg_coef != 0.0 else None
+            labeler = preference_labeler(self.preference_source, self.env, self.subgoal_space, self.seed, value_score)
         self.preference_pipeline = PreferencePipeline(
             self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
             self.n_preference_pairs,
             TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space),
-            self._preference_labeler(self.subgoal_space, value_score),
+            labeler,
         )
 
     def learn(
