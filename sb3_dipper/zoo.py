@@ -150,7 +150,6 @@ def _sample_dipper_without_value_term(trial: optuna.Trial) -> dict[str, Any]:
         "option_steps": trial.suggest_categorical("option_steps", [10, 15, 20, 25]),
         "pairs_per_batch": trial.suggest_categorical("pairs_per_batch", [32, 64, 128]),
         "random_subgoal_prob": trial.suggest_categorical("random_subgoal_prob", [0.0, 0.1, 0.2, 0.3]),
-        "planning_lookahead": trial.suggest_categorical("planning_lookahead", [1, 2, 3]),
     }
 
 

@@ -124,7 +124,7 @@ def test_one_dpo_step_by_hand():
     # A full dataset: the training round has nothing new to label and trains on these pairs.
     model.preferences = PreferenceDataset(2)
     model.preferences.add(pairs)
-    model._labeler = PrimitiveInTheLoopLabeler(goal_reached)
+    model.preference_pipeline.labeler = PrimitiveInTheLoopLabeler(goal_reached)
     reference = math.log(1 / 4)
 
     def loss_by_hand() -> float:
@@ -254,7 +254,7 @@ def test_the_policy_learns_preferences_it_was_not_shown():
     held_out.policy.load_state_dict(model.policy.state_dict())
     held_out.learn(500)
     pairs = sample_segment_pairs(held_out.trajectory_buffer, 1000, 10, 0.8, np.random.default_rng(123))
-    pairs.labels = model._labeler.label(pairs)
+    pairs.labels = model.preference_pipeline.labeler.label(pairs)
     strict = pairs.labels != 0.5
 
     def accuracy(policy) -> float:

@@ -190,10 +190,10 @@ def test_element_subgoals_ask_each_task_element_done_or_at_rest():
     element_env.close()
 
 
-@pytest.mark.parametrize("planning", ["off", "subgoal"])
-def test_dipper_proposes_only_element_subgoals(planning):
+@pytest.mark.parametrize("mode", ["off", "subgoal"])
+def test_dipper_proposes_only_element_subgoals(mode):
     element_env = gym.make(ENV_ID, element_subgoals=True, max_episode_steps=45)
-    model = tiny_model(DIPPER, element_env, option_steps=15, planning=planning)
+    model = tiny_model(DIPPER, element_env, option_steps=15, planner_kwargs=dict(mode=mode))
     model.learn(300)
     space = model.subgoal_space
     combinations = space.to_world(np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]]))

@@ -64,9 +64,6 @@ BAD_SETTINGS = [
     ("nll_coef", -1.0, NON_NEGATIVE, None),
     ("label_smoothing", 0.5, r"must be a finite number in \[0, 0.5\)", None),
     ("label_smoothing", -0.1, r"must be a finite number in \[0, 0.5\)", None),
-    ("planning_lookahead", 0, "must be at least 1", None),
-    ("planning_resolution", 0.0, POSITIVE, None),
-    ("planning_value_threshold", NAN, "must be a finite number", None),
     ("gradient_penalty_coef", -10.0, NON_NEGATIVE, None),
     ("adversarial_coef", NAN, NON_NEGATIVE, None),
     ("value_reg_coef", -0.1, NON_NEGATIVE, None),
@@ -110,7 +107,6 @@ INTEGER_SETTINGS = (
     "max_episode_steps",
     "n_demos",
     "segment_length",
-    "planning_lookahead",
     "greedy_episode_interval",
     "n_hindsight_goals",
     "target_update_interval",
@@ -188,9 +184,17 @@ def test_dipper_load_refuses_a_bad_beta_or_planning_mode_in_the_file_or_given_to
     beta = with_saved_setting(saved, tmp_path / "beta.zip", "beta", -1.0)
     with pytest.raises(ValueError, match=rf"{re.escape(str(beta))} holds .*: beta must be a finite number > 0, got -1.0"):
         DIPPER.load(beta, env=short_maze())
-    planning = with_saved_setting(saved, tmp_path / "planning.zip", "planning", "bogus")
-    with pytest.raises(ValueError, match=r"Unknown planning 'bogus': choose one of \('off', 'subgoal', 'waypoint'\)"):
+    planning = with_saved_setting(saved, tmp_path / "planning.zip", "planner_kwargs", {"mode": "bogus"})
+    with pytest.raises(ValueError, match=r"Unknown planning mode 'bogus': choose one of \('off', 'subgoal', 'waypoint'\)"):
         DIPPER.load(planning)
+    planner = with_saved_setting(saved, tmp_path / "planner.zip", "planner_kwargs", {"mode": "subgoal", "lookahead": 0})
+    with pytest.raises(
+        ValueError, match=rf"{re.escape(str(planner))} holds .*lookahead must be at least 1, got 0.*planner_kwargs=\.\.\."
+    ):
+        DIPPER.load(planner)
+    # planner_kwargs given to load replace their keys of the saved planner's settings, and keep the saved graph.
+    loaded = DIPPER.load(saved, planner_kwargs={"lookahead": 3})
+    assert loaded.planner.lookahead == 3 and loaded.planner.mode == DIPPER.load(saved).planner.mode
     # A value given to load is checked too, and said to come from there.
     with pytest.raises(ValueError, match=rf"DIPPER.load\({re.escape(str(saved))}, beta=-1.0\): beta must be"):
         DIPPER.load(saved, beta=-1.0)
@@ -360,7 +364,7 @@ def random_pairs(model, n_pairs: int = 4) -> TrajectoryPairs:
 
 def test_the_score_value_term_has_its_own_coefficient_at_pipers_scale(env):
     model = tiny_model(DIPPER, env, value_reg="score", value_reg_coef=0.1)
-    assert model.value_score_coef == 1e-6 and model._labeler.value_score == model._pair_value_score
+    assert model.value_score_coef == 1e-6 and model.preference_pipeline.labeler.value_score == model._pair_value_score
     pairs = random_pairs(model)
     th.manual_seed(0)  # the lower value is taken at a sampled lower action
     score = model._pair_value_score(pairs)

@@ -302,7 +302,7 @@ def test_algorithms_train_on_labels_that_arrive_late(tmp_path, model_class):
     env = short_maze()
     model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path}", n_preference_pairs=4)
     model.learn(120)
-    assert len(model.preferences) == 0 and model._labeler.pending == 4 and model._n_updates == 0
+    assert len(model.preferences) == 0 and model.preference_pipeline.labeler.pending == 4 and model._n_updates == 0
     assert isinstance(model.preference_source, str)  # the configured source; the live one is not saved
     queue = LabelQueue(tmp_path)
     given = {pair_id: label for pair_id, label in zip(queue.waiting_ids(), [1.0, 0.0, 0.5, np.nan], strict=True)}
@@ -397,8 +397,8 @@ def test_hand_edited_labels_and_queued_pairs_are_checked_as_preference_files_are
 
 def test_noise_is_chosen_from_the_constructor(maze_env):
     model = any_tiny_model(DIPPER, maze_env, preference_source="noisy:0.25")
-    assert isinstance(model._labeler, NoisyLabeler) and model._labeler.noise == 0.25
-    assert isinstance(model._labeler.script, PrimitiveInTheLoopLabeler)
+    assert isinstance(model.preference_pipeline.labeler, NoisyLabeler) and model.preference_pipeline.labeler.noise == 0.25
+    assert isinstance(model.preference_pipeline.labeler.script, PrimitiveInTheLoopLabeler)
 
 
 class ConstantLabeler(PreferenceSource):
@@ -456,7 +456,7 @@ def page(tmp_path):
     """A tiny DIPPER run's queue of four pairs, and the labelling page serving it (the console script's code)."""
     model = any_tiny_model(DIPPER, short_maze(), preference_source=f"people:{tmp_path / 'labels'}", n_preference_pairs=4)
     model.learn(120)
-    assert model._labeler.pending == 4
+    assert model.preference_pipeline.labeler.pending == 4
     port = free_port()
     server = subprocess.Popen(
         [sys.executable, "-m", "sb3_dipper.labelling.app", "--run", str(tmp_path), "--port", str(port)],

@@ -131,9 +131,9 @@ def test_the_reward_model_is_not_pickled_with_the_buffer(trained):
 def test_the_value_term_breaks_ties_of_the_primitive_in_the_loop_score(trained):
     pairs = sample_trajectory_pairs(trained.trajectory_buffer, 200, 0.0, trained.subgoal_space, np.random.default_rng(0))
     no_value = tiny_piper(short_maze(), value_reg_coef=0.0)
-    assert no_value._labeler.value_score is None
-    ties_without = np.mean(no_value._labeler.label(pairs) == 0.5)
-    ties_with = np.mean(trained._labeler.label(pairs) == 0.5)
+    assert no_value.preference_pipeline.labeler.value_score is None
+    ties_without = np.mean(no_value.preference_pipeline.labeler.label(pairs) == 0.5)
+    ties_with = np.mean(trained.preference_pipeline.labeler.label(pairs) == 0.5)
     # (The lower value is estimated at a sampled lower action, as in the authors' code, so even a pair of two copies
     # of one trajectory rarely ties.)
     assert ties_with < 0.05 and ties_without > 0.5
@@ -201,7 +201,7 @@ def held_out_accuracy(reward_model, data_model: PIPER) -> float:
     """Accuracy of ``reward_model`` on fresh PiL-labelled pairs of another run's trajectories."""
     rng = np.random.default_rng(3)
     pairs = sample_trajectory_pairs(data_model.trajectory_buffer, 1000, 0.8, data_model.subgoal_space, rng)
-    labels = th.as_tensor(data_model._labeler.label(pairs))
+    labels = th.as_tensor(data_model.preference_pipeline.labeler.label(pairs))
     actions = th.as_tensor(pairs.actions.reshape(-1, pairs.actions.shape[-1]))
     with th.no_grad():
         step_rewards = reward_model(data_model._pair_observations(pairs), actions).reshape(pairs.mask.shape)

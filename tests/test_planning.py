@@ -1,10 +1,14 @@
 """Planning over achieved states: the voxel graph, shortest paths that stitch trajectories, waypoints, and who proposes
-DIPPER's subgoals with ``planning="subgoal"`` (the planner's share, zoo_scripts/planner_share.py)."""
+DIPPER's subgoals with the subgoal planner (the planner's share, zoo_scripts/planner_share.py), and DIPPER's planning
+parameters before ``planner_kwargs``."""
 
 import json
 import math
+import re
 import subprocess
 import sys
+import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +17,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.save_util import data_to_json
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import DIPPER, HIER, RAPS
@@ -22,6 +27,7 @@ from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from tests.conftest import SHORT_EPISODES, any_tiny_model, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
+from tests.test_save_load import rollout_actions
 from zoo_scripts import planner_share
 
 REPO = Path(__file__).resolve().parent.parent
@@ -116,7 +122,7 @@ def one_room_maze(seed: int = 0):
 def grid_graph(model: DIPPER) -> None:
     """Give the model's graph every voxel of its subgoal space, each joined both ways to its four neighbours (the walls
     ignored), so that it knows a path from everywhere to everywhere."""
-    graph = model.subgoal_graph
+    graph = model.planner.graph
     cells = np.stack(np.meshgrid(*(np.arange(n) for n in graph.grid_shape), indexing="ij"), -1).reshape(-1, 2)
     points = (graph.subgoal_space.low + (cells + 0.5) * graph.resolution).astype(np.float32)
     ids = graph.voxel_ids(points)
@@ -132,10 +138,10 @@ def grid_graph(model: DIPPER) -> None:
 
 
 def test_planner_decisions_are_marked_and_their_share_logged(tmp_path):
-    model = tiny_model(DIPPER, one_room_maze(), planning="subgoal", planning_lookahead=2)
+    model = tiny_model(DIPPER, one_room_maze(), planner_kwargs=dict(mode="subgoal", lookahead=2))
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(400, log_interval=1)
-    assert len(model.subgoal_graph) > 0
+    assert len(model.planner.graph) > 0
     shares = pd.read_csv(tmp_path / "progress.csv")["rollout/planned_share"].dropna()
     # Short episodes seldom know a path to their goal: the planner plans a few rows, the policy the rest.
     assert len(shares) > 0 and ((shares >= 0) & (shares < 1)).all() and shares.max() > 0
@@ -143,21 +149,22 @@ def test_planner_decisions_are_marked_and_their_share_logged(tmp_path):
 
     observation = maze_env.reset()
     actions = model._high_level_actions(observation, deterministic=True)
-    plan = model._plan(observation, model.subgoal_graph)
+    plan = model.planner.plan(observation, model.low_normalizer, training=True)
     np.testing.assert_array_equal(model.last_planned, plan.planned)
     np.testing.assert_array_equal(actions[plan.planned], model.subgoal_space.to_unit(plan.waypoints[plan.planned]))
-    model.subgoal_graph = None  # the planner off: the policy proposes every subgoal
+    model.planner.graph = None  # the planner off: the policy proposes every subgoal
     model._high_level_actions(observation, deterministic=True)
     assert model.last_planned.shape == (1,) and not model.last_planned.any()
 
 
 def test_plan_in_predict_false_plans_in_training_only(tmp_path):
     models = {}
-    for plan_in_predict in (True, False):
-        model = tiny_model(DIPPER, one_room_maze(), planning="subgoal", planning_lookahead=2, plan_in_predict=plan_in_predict)
-        model.set_logger(configure(str(tmp_path / str(plan_in_predict)), ["csv"]))
+    for in_predict in (True, False):
+        planner_kwargs = dict(mode="subgoal", lookahead=2, in_predict=in_predict)
+        model = tiny_model(DIPPER, one_room_maze(), planner_kwargs=planner_kwargs)
+        model.set_logger(configure(str(tmp_path / str(in_predict)), ["csv"]))
         model.learn(400, log_interval=1)
-        models[plan_in_predict] = model
+        models[in_predict] = model
     # Training is the same run: the planner steered some training proposals either way.
     assert (pd.read_csv(tmp_path / "False" / "progress.csv")["rollout/planned_share"].dropna() > 0).any()
     for trained, policy_only in zip(models[True].policy.parameters(), models[False].policy.parameters(), strict=True):
@@ -168,27 +175,27 @@ def test_plan_in_predict_false_plans_in_training_only(tmp_path):
     observation = short_maze(seed=3).reset()
     actions, _ = model.predict(observation, deterministic=True)
     assert not model.last_planned.any()  # the preference-trained policy proposed the subgoal
-    model.plan_in_predict = True
+    model.planner.in_predict = True
     model.predict(observation, deterministic=True)
     assert model.last_planned.all()
-    model.plan_in_predict = False
+    model.planner.in_predict = False
     # Nothing of the planner is needed to act, so the model exports; the exported policy acts as predict does.
     exported_actions, _ = model.export_policy().predict(observation, deterministic=True)
     np.testing.assert_array_equal(exported_actions, actions)
     model.save(tmp_path / "model")
-    assert DIPPER.load(tmp_path / "model").plan_in_predict is False
+    assert DIPPER.load(tmp_path / "model").planner.in_predict is False
 
 
-@pytest.mark.parametrize("planning", ["off", "waypoint"])
-def test_plan_in_predict_false_needs_the_subgoal_planner(maze_env, planning):
-    with pytest.raises(ValueError, match="plan_in_predict=False needs planning='subgoal'"):
-        tiny_model(DIPPER, maze_env, planning=planning, plan_in_predict=False)
+@pytest.mark.parametrize("mode", ["off", "waypoint"])
+def test_plan_in_predict_false_needs_the_subgoal_planner(maze_env, mode):
+    with pytest.raises(ValueError, match="in_predict=False needs mode='subgoal'"):
+        tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode=mode, in_predict=False))
 
 
 def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_or_three_without_a_planner(tmp_path):
     run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
     maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
-    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
+    model = tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal", lookahead=2))
     model.learn(1000)  # the graph is built after 4 episodes
     grid_graph(model)  # a path from everywhere, so that the planner plans (on 1,000 steps it seldom knows one)
     model.save(run / "PointMazeFourRooms-v0.zip")
@@ -288,7 +295,7 @@ def planning_model(normalize: bool) -> DIPPER:
         for _ in range(200):  # ten episodes: ten goals, so the goal's statistics are not a single point
             env.step(np.array([env.action_space.sample()]))
         env.training = False  # the statistics stay those the model copies
-    model = tiny_model(DIPPER, env, planning="subgoal", planning_lookahead=2, random_subgoal_prob=0.0)
+    model = tiny_model(DIPPER, env, planner_kwargs=dict(mode="subgoal", lookahead=2), random_subgoal_prob=0.0)
     model._refresh_low_normalizer()
     return model
 
@@ -307,7 +314,7 @@ def observation_at(model: DIPPER, achieved: list[float], goal: list[float], dtyp
 
 def known_path(model: DIPPER, points: list[list[float]]) -> None:
     """The model's graph: a chain of edges through ``points`` (world coordinates)."""
-    graph = model.subgoal_graph
+    graph = model.planner.graph
     points_array = np.array(points, dtype=np.float32)
     ids = graph.voxel_ids(points_array)
     graph.set_nodes(ids, points_array)
@@ -372,11 +379,11 @@ def test_a_known_path_is_planned_to_its_waypoint_and_to_the_goal_within_the_look
 
 def test_planning_off_and_an_empty_graph_act_identically():
     env = short_maze(n_envs=2)
-    planning = tiny_model(DIPPER, env, planning="subgoal")
-    off = tiny_model(DIPPER, env, planning="off")
+    planning = tiny_model(DIPPER, env, planner_kwargs=dict(mode="subgoal"))
+    off = tiny_model(DIPPER, env)
     off.policy.load_state_dict(planning.policy.state_dict())
     off.lower.policy.load_state_dict(planning.lower.policy.state_dict())
-    assert len(planning.subgoal_graph) == 0
+    assert len(planning.planner.graph) == 0 and off.planner.graph is None
     observation, state, episode_start = env.reset(), None, np.ones(2, dtype=bool)
     for _ in range(20):
         action, state_planning = planning.predict(observation, state, episode_start, deterministic=True)
@@ -389,10 +396,10 @@ def test_planning_off_and_an_empty_graph_act_identically():
 
 
 def test_random_subgoals_are_not_counted_as_planned(tmp_path):
-    model = tiny_model(DIPPER, short_maze(), planning="subgoal", planning_lookahead=2, random_subgoal_prob=1.0)
+    model = tiny_model(DIPPER, short_maze(), planner_kwargs=dict(mode="subgoal", lookahead=2), random_subgoal_prob=1.0)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(400, log_interval=1)
-    assert len(model.subgoal_graph) > 0
+    assert len(model.planner.graph) > 0
     observation = model.env.reset()
     model._collecting_high_level_actions(observation)
     planned_by_graph = model.last_planned.copy()
@@ -408,9 +415,9 @@ def test_a_trained_higher_policy_acts_differently_from_an_untrained_one(maze_env
     """On the fast maze, with the planner steering training only, the evaluation's subgoals are the policy's: resetting
     the higher policy to untrained weights changes them (before the planner flag was returned by the planner, every row
     counted as planned and the two evaluations were the same)."""
-    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2, plan_in_predict=False)
+    model = tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal", lookahead=2, in_predict=False))
     model.learn(600)
-    assert len(model.preferences) > 0 and len(model.subgoal_graph) > 0
+    assert len(model.preferences) > 0 and len(model.planner.graph) > 0
     trained = evaluation_subgoals(model)
     assert not model.last_planned.any()
     planner_share.reset_higher_policy(model, seed=1)
@@ -509,3 +516,125 @@ def test_a_run_is_measured_on_the_env_kwargs_it_trained_with(tmp_path):
     (tmp_path / "Env-v0" / "config.yml").write_text("!!python/object/apply:os.system ['echo unsafe']\n")
     with pytest.raises(ValueError, match="not the configuration rl-zoo3 saves"):
         run_env_kwargs(tmp_path, "Env-v0")
+
+
+# ------------------------------------------------------------------------------- planner_kwargs, and the form before it
+
+OLD_FORM = dict(planning="subgoal", planning_lookahead=2, plan_in_predict=False, planning_value_threshold=-12.0)
+NEW_FORM = dict(mode="subgoal", lookahead=2, in_predict=False, value_threshold=-12.0)
+
+
+def test_the_five_planning_parameters_still_work_and_warn_naming_planner_kwargs(tmp_path):
+    message = (
+        "DIPPER's planning, plan_in_predict, planning_lookahead, planning_value_threshold are deprecated: pass "
+        "planner_kwargs={'mode': 'subgoal', 'in_predict': False, 'lookahead': 2, 'value_threshold': -12.0} instead"
+    )
+    with pytest.warns(DeprecationWarning, match=re.escape(message)):
+        old = tiny_model(DIPPER, one_room_maze(), **OLD_FORM)
+    # The same planner and the same run: the same graph, logs and actions (each model built and trained in turn, as
+    # building one seeds torch's global generator, which training draws from).
+    old.set_logger(configure(str(tmp_path / "old"), ["csv"]))
+    old.learn(400, log_interval=1)
+    new = tiny_model(DIPPER, one_room_maze(), planner_kwargs=NEW_FORM)
+    new.set_logger(configure(str(tmp_path / "new"), ["csv"]))
+    new.learn(400, log_interval=1)
+    assert old.planner_kwargs == new.planner_kwargs == NEW_FORM
+    np.testing.assert_array_equal(old.planner.graph.edges, new.planner.graph.edges)
+    logs = [pd.read_csv(tmp_path / folder / "progress.csv").filter(like="rollout/") for folder in ("old", "new")]
+    pd.testing.assert_frame_equal(*logs)
+    grid_graph(old)
+    grid_graph(new)
+    for in_predict in (False, True):
+        old.planner.in_predict = new.planner.in_predict = in_predict
+        np.testing.assert_array_equal(rollout_actions(old, short_maze(seed=4)), rollout_actions(new, short_maze(seed=4)))
+
+
+def test_a_deprecated_planning_parameter_replaces_its_planner_kwargs_key():
+    """A YAML entry's planner_kwargs with the zoo's ``-params planning:'off'`` on top: the parameter wins."""
+    with pytest.warns(DeprecationWarning, match=r"planning is deprecated: pass planner_kwargs=\{'mode': 'off'\}"):
+        model = tiny_model(DIPPER, short_maze(), planner_kwargs=dict(mode="subgoal", lookahead=2), planning="off")
+    assert model.planner_kwargs == dict(mode="off", lookahead=2) and model.planner.graph is None
+
+
+def test_the_planning_attributes_are_the_planners_and_warn(maze_env):
+    model = tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal", lookahead=2))
+    attributes = dict(planning="mode", plan_in_predict="in_predict", planning_lookahead="lookahead")
+    attributes.update(planning_resolution="resolution", planning_value_threshold="value_threshold", subgoal_graph="graph")
+    for old, new in attributes.items():
+        with pytest.warns(DeprecationWarning, match=f"DIPPER.{old} is deprecated: use model.planner.{new}"):
+            assert getattr(model, old) is getattr(model.planner, new)
+    with pytest.warns(DeprecationWarning, match="DIPPER.plan_in_predict is deprecated"):
+        model.plan_in_predict = False
+    assert model.planner.in_predict is False and not model._predict_plans()
+    with pytest.warns(DeprecationWarning):
+        model.subgoal_graph = None
+    assert model.planner.graph is None
+
+
+@pytest.mark.parametrize(
+    "planner_kwargs, error, message",
+    [
+        (dict(mode="graph"), ValueError, r"Unknown planning mode 'graph': choose one of \('off', 'subgoal', 'waypoint'\)"),
+        (dict(mode="subgoal", lookahead=0), ValueError, "lookahead must be at least 1"),
+        (dict(mode="subgoal", lookahead=1.5), ValueError, r"lookahead must be a whole number"),
+        (dict(mode="subgoal", resolution=0.0), ValueError, "resolution must be a finite number > 0"),
+        (dict(mode="subgoal", value_threshold=math.nan), ValueError, "value_threshold must be a finite number"),
+        (dict(mode="subgoal", look_ahead=2), TypeError, "SubgoalPlanner got an unexpected keyword argument 'look_ahead'"),
+    ],
+)
+def test_planner_kwargs_are_checked_at_construction(maze_env, planner_kwargs, error, message):
+    with pytest.raises(error, match=message):
+        tiny_model(DIPPER, maze_env, planner_kwargs=planner_kwargs)
+
+
+def test_whole_floats_and_strings_for_the_lookahead_become_ints(maze_env):
+    assert tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal", lookahead=2.0)).planner.lookahead == 2
+    with pytest.warns(DeprecationWarning):
+        assert tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead="3").planner.lookahead == 3
+
+
+def with_the_attributes_before_planner_kwargs(new_zip: Path, old_zip: Path, graph: SubgoalGraph) -> None:
+    """``new_zip`` rewritten as DIPPER saved models before ``planner_kwargs``: the planning settings and the graph as
+    attributes of the model (NEW_FORM's settings), no planner."""
+    with zipfile.ZipFile(new_zip) as archive:
+        files = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(files["data"])
+    assert "planner" in data and "planner_kwargs" in data
+    del data["planner"], data["planner_kwargs"]
+    attributes = dict(
+        planning="subgoal",
+        plan_in_predict=False,
+        planning_lookahead=2,
+        planning_resolution=None,
+        planning_value_threshold=-12.0,
+        subgoal_graph=graph,
+        _trajectories_since_graph=3,
+    )
+    data.update(json.loads(data_to_json(attributes)))
+    files["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(old_zip, "w") as archive:
+        for name, content in files.items():
+            archive.writestr(name, content)
+
+
+def test_a_model_saved_before_planner_kwargs_loads_and_plans_as_it_did(tmp_path):
+    model = tiny_model(DIPPER, one_room_maze(), planner_kwargs=NEW_FORM)
+    model.learn(400)
+    grid_graph(model)
+    model.planner.in_predict = True  # so that predict plans, and the actions tell whether the graph came along
+    model.save(tmp_path / "new.zip")
+    with_the_attributes_before_planner_kwargs(tmp_path / "new.zip", tmp_path / "old.zip", model.planner.graph)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use
+        loaded = DIPPER.load(tmp_path / "old.zip", env=one_room_maze())
+    assert loaded.planner_kwargs == {**NEW_FORM, "resolution": None}
+    assert not {"planning", "subgoal_graph", "_trajectories_since_graph"} & set(vars(loaded))
+    np.testing.assert_array_equal(loaded.planner.graph.edges, model.planner.graph.edges)
+    assert loaded.planner.in_predict is False and loaded.planner.value_threshold == -12.0
+    loaded.planner.in_predict = True
+    np.testing.assert_array_equal(rollout_actions(loaded, short_maze(seed=4)), rollout_actions(model, short_maze(seed=4)))
+    # It trains on, and saves in the new form.
+    loaded.learn(100, reset_num_timesteps=False)
+    loaded.save(tmp_path / "again.zip")
+    assert DIPPER.load(tmp_path / "again.zip").planner.lookahead == 2

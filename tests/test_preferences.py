@@ -1,13 +1,18 @@
-"""Preference pairs: primitive-in-the-loop scores and labels, ties, hindsight goal sharing, the stored dataset."""
+"""Preference pairs: primitive-in-the-loop scores and labels, ties, hindsight goal sharing, the stored dataset, and the
+pipeline that labels pairs on schedule and saves itself."""
 
 import numpy as np
 import pytest
 from gymnasium import spaces
 
+from sb3_dipper.common.preference_pipeline import PreferencePipeline
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
+    PreferenceSource,
     PrimitiveInTheLoopLabeler,
+    SegmentPairSampler,
     TrajectoryPairs,
+    TrajectoryPairSampler,
     MAX_NEW_PAIRS_PER_ROUND,
     final_goal_distances,
     labels_from_scores,
@@ -226,3 +231,105 @@ def test_progress_tie_breaker_answers_only_the_scripts_ties(buffer, spec):
         ProgressTieBreaker().label(pairs)
     with pytest.raises(ValueError, match="preference_source"):
         preference_source_from("progress:3", script)
+
+
+# ---------------------------------------------------------------------------------------------------- the pipeline
+
+
+class QueueingLabeler(PreferenceSource):
+    """Queues every other pair (NaN) for a person, who labels them 0.5 when :meth:`answer` is called."""
+
+    def __init__(self) -> None:
+        self.queued: TrajectoryPairs | None = None
+        self.arrived: TrajectoryPairs | None = None
+        self.restored_with: np.ndarray | None = None
+
+    @property
+    def pending(self) -> int:
+        return 0 if self.queued is None else len(self.queued)
+
+    def label(self, pairs: TrajectoryPairs) -> np.ndarray:
+        labels = PrimitiveInTheLoopLabeler(goal_reached).label(pairs)
+        labels[1::2] = np.nan
+        self.queued = pairs.select(np.arange(1, len(pairs), 2))
+        return labels
+
+    def answer(self) -> None:
+        self.arrived, self.queued = self.queued, None
+        assert self.arrived is not None
+        self.arrived.labels = np.full(len(self.arrived), 0.5, dtype=np.float32)
+
+    def collect(self) -> TrajectoryPairs | None:
+        arrived, self.arrived = self.arrived, None
+        return arrived
+
+    @property
+    def handed_ids(self) -> np.ndarray:
+        return np.array([7], dtype=np.int64)
+
+    def dataset_restored(self, handed_ids: np.ndarray | None = None) -> None:
+        self.restored_with = handed_ids
+
+
+def pipeline_of(buffer: TrajectoryBuffer, labeler: PreferenceSource, budget: int = 100) -> PreferencePipeline:
+    return PreferencePipeline(buffer, budget, TrajectoryPairSampler(0.5, SPACE), labeler)
+
+
+def test_the_pipeline_labels_the_pairs_due_and_adds_late_labels_when_they_arrive(buffer):
+    labeler = QueueingLabeler()
+    pipeline = pipeline_of(buffer, labeler)
+    new = pipeline.label_new_pairs(num_timesteps=10, total_timesteps=100, rng=np.random.default_rng(0))
+    # A tenth of the budget is due; every other pair waits for its label.
+    assert new is not None and len(new) == 10 and np.isnan(new.labels[1::2]).all()
+    assert len(pipeline.dataset) == 5 and labeler.pending == 5
+    # Pairs waiting for a person count as asked: none is due until training moves on.
+    assert pipeline.label_new_pairs(num_timesteps=10, total_timesteps=100, rng=np.random.default_rng(1)) is None
+    labeler.answer()
+    # The answers join first, then the rest of the share is labelled (one of the two new pairs queued).
+    new = pipeline.label_new_pairs(num_timesteps=12, total_timesteps=100, rng=np.random.default_rng(2))
+    assert new is not None and len(new) == 2 and len(pipeline.dataset) == 11
+    assert pipeline.dataset.handed_ids.tolist() == [7]
+
+
+def test_the_pipeline_waits_for_enough_trajectories():
+    buffer = TrajectoryBuffer(capacity=4, max_length=3, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(buffer, [(1, 0)])
+    pipeline = pipeline_of(buffer, PrimitiveInTheLoopLabeler(goal_reached))
+    assert pipeline.label_new_pairs(50, 100, np.random.default_rng(0)) is None  # whole-trajectory pairs need two
+    segments = PreferencePipeline(buffer, 100, SegmentPairSampler(1, 0.5), PrimitiveInTheLoopLabeler(goal_reached))
+    assert len(segments.label_new_pairs(50, 100, np.random.default_rng(0))) == 50
+
+
+def test_the_pipeline_truncates_at_the_first_arrival_when_asked(buffer):
+    sampler = TrajectoryPairSampler(0.0, SPACE, goal_reached)
+    whole = TrajectoryPairSampler(0.0, SPACE).sample(buffer, 50, np.random.default_rng(3))
+    truncated = sampler.sample(buffer, 50, np.random.default_rng(3))
+    np.testing.assert_array_equal(truncated.mask, truncate_at_first_arrival(whole, goal_reached).mask)
+    assert truncated.mask.sum() < whole.mask.sum()
+
+
+def test_the_pipeline_saves_and_restores_itself_all_or_nothing(buffer, tmp_path):
+    labeler = QueueingLabeler()
+    pipeline = pipeline_of(buffer, labeler)
+    pipeline.label_new_pairs(10, 100, np.random.default_rng(0))
+    labeler.answer()
+    pipeline.label_new_pairs(12, 100, np.random.default_rng(1))
+    pipeline.save(tmp_path / "high.npz")
+
+    fresh_buffer = TrajectoryBuffer(capacity=10, max_length=3, observation_space=OBS_SPACE, action_dim=2)
+    restored_labeler = QueueingLabeler()
+    restored = pipeline_of(fresh_buffer, restored_labeler)
+    install = restored.read(tmp_path / "high.npz")
+    assert len(fresh_buffer) == 0 and len(restored.dataset) == 0 and restored_labeler.restored_with is None
+    install()
+    assert len(fresh_buffer) == len(buffer) and restored_labeler.restored_with.tolist() == [7]
+    np.testing.assert_array_equal(restored.dataset.all_pairs().labels, pipeline.dataset.all_pairs().labels)
+    # The file is the one save_preference_data writes.
+    restored_dataset = load_preference_data(tmp_path / "high.npz", fresh_buffer, label_budget=100)
+    np.testing.assert_array_equal(restored_dataset.all_pairs().labels, pipeline.dataset.all_pairs().labels)
+
+    smaller = TrajectoryBuffer(capacity=5, max_length=3, observation_space=OBS_SPACE, action_dim=2)
+    untouched = pipeline_of(smaller, QueueingLabeler())
+    with pytest.raises(ValueError, match="trajectory_buffer_size=10"):
+        untouched.load(tmp_path / "high.npz")
+    assert len(smaller) == 0 and len(untouched.dataset) == 0

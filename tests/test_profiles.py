@@ -106,7 +106,7 @@ def test_the_random_push_profile_clones_two_hundred_dart_episodes(tmp_path, monk
     """The measured random push configuration, with the fixed tasks' switches."""
     model, env, n_timesteps = dart_profile("FetchPush-v4", 200, monkeypatch, tmp_path)
     assert n_timesteps == 640_000
-    assert model.hindsight_actions and model.planning == "subgoal"
+    assert model.hindsight_actions and model.planner.mode == "subgoal"
     env.close()
 
 
@@ -149,7 +149,7 @@ MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0", "FetchPic
 
 def test_dipper_switches_are_on_only_where_measured():
     """No switch beyond the paper is on for a paper task until a measurement there shows it helps."""
-    switches = ("nll_coef", "hindsight_actions", "truncate_at_goal", "planning", "planning_lookahead")
+    switches = ("nll_coef", "hindsight_actions", "truncate_at_goal", "planner_kwargs")
     for directory in (hyperparams_dir(), PAPER_DIR):
         for env_id in PAPER_TASKS:
             entry = load_entry("dipper", env_id, directory)

@@ -57,12 +57,12 @@ def test_the_other_algorithms_repeat_their_runs_with_the_same_seed(model_class):
 
 
 def test_the_planning_graph_is_saved_with_the_model(tmp_path, maze_env):
-    model = tiny_model(DIPPER, maze_env, planning="subgoal", planning_lookahead=2)
+    model = tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal", lookahead=2))
     model.learn(400)
-    assert len(model.subgoal_graph) > 0
+    assert len(model.planner.graph) > 0
     model.save(tmp_path / "model")
     loaded = DIPPER.load(tmp_path / "model")
-    np.testing.assert_array_equal(loaded.subgoal_graph.edges, model.subgoal_graph.edges)
+    np.testing.assert_array_equal(loaded.planner.graph.edges, model.planner.graph.edges)
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
 
 

@@ -351,6 +351,25 @@ def test_the_lower_levels_env_has_no_render_mode_and_says_nothing(maze_env):
     assert render_mode_warnings(lambda: SubgoalVecEnv(space, maze_env.action_space, model.subgoal_space, 2)) == []
 
 
+def test_neither_levels_env_can_be_stepped_and_each_gives_its_rewards(maze_env):
+    """The lower SAC's and HIER's higher SAC's envs are facades the option layer drives: they refuse a reset or a step,
+    naming their level, and answer HER's compute_reward (the subgoal reward; the base env's)."""
+    model = tiny_model(HIER, maze_env)
+    lower_env, higher_env = model.lower.env, model.higher.env
+    for env, level in ((lower_env, "lower"), (higher_env, "higher")):
+        for call in (env.reset, lambda env=env: env.step(np.zeros((1, 2), np.float32))):
+            with pytest.raises(RuntimeError, match=f"The {level} level's env is driven by the option layer"):
+                call()
+        assert env.env_is_wrapped(VecNormalize) == [False] and env.get_attr("num_envs") == [1]
+    goals = np.zeros((3, 2), np.float32)
+    far = goals + 10.0
+    np.testing.assert_array_equal(lower_env.env_method("compute_reward", goals, far, {})[0], [-1.0] * 3)
+    expected = maze_env.env_method("compute_reward", goals, far, [{}] * 3, indices=[0])[0]
+    np.testing.assert_array_equal(higher_env.env_method("compute_reward", goals, far, [{}] * 3, indices=[0])[0], expected)
+    with pytest.raises(AttributeError, match="only provides compute_reward"):
+        lower_env.env_method("render")
+
+
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_building_a_model_emits_no_render_mode_warning(model_class, maze_env):
     assert render_mode_warnings(lambda: any_tiny_model(model_class, maze_env)) == []
@@ -392,4 +411,4 @@ def test_the_exported_policy_keeps_the_normalisation_statistics():
 
 def test_a_planning_model_refuses_to_export(maze_env):
     with pytest.raises(NotImplementedError, match=r"model\.predict"):
-        tiny_model(DIPPER, maze_env, planning="subgoal").export_policy()
+        tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode="subgoal")).export_policy()

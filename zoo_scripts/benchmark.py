@@ -6,7 +6,7 @@
     python zoo_scripts/benchmark.py profiles --envs FetchPush-v4 --variant b128 batch_size=128   # and a cheaper copy
     python zoo_scripts/benchmark.py updates                         # ms per lower/higher update vs SB3's SAC update
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
-    python zoo_scripts/benchmark.py learning --algos dipper --variant no-planning --set "planning='off'" --name ablations
+    python zoo_scripts/benchmark.py learning --algos dipper --variant no-nll --set nll_coef=0.0 --name ablations
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick            # every algorithm, <= 1 h
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick --report-only --write   # BENCHMARKS.md
     python zoo_scripts/benchmark.py learning --protocol paper --ray-address HEAD:6379     # paper tasks on a cluster
@@ -19,7 +19,7 @@
 
 so hyperparameters come from the task's entry of ``hyperparams/<algo>.yml`` (``callback`` included) exactly as there,
 ``--set key=value`` and ``--env-kwargs key=value`` become the zoo's ``-params key:value`` and ``--env-kwargs key:value``
-(the value is read as Python by rl-zoo3: quote strings, ``--set "planning='off'"``; the env kwargs apply to the
+(the value is read as Python by rl-zoo3: quote strings, ``--set "value_reg='score'"``; the env kwargs apply to the
 training and the evaluation envs), and each run is an ordinary zoo run folder::
 
     OUT/<variant or default>/seed_<n>/<algo>/<env>_1/
@@ -176,7 +176,7 @@ def machine() -> str:
 
 def command_line(script: str, arguments: list[str]) -> str:
     """The shell command that runs ``zoo_scripts/<script>`` with ``arguments``, each quoted where a shell would split or
-    read it (``--set "planning='off'"``), so a stamped command reruns as it ran."""
+    read it (``--set "value_reg='score'"``), so a stamped command reruns as it ran."""
     return shlex.join(["python", f"zoo_scripts/{script}", *arguments])
 
 
@@ -445,7 +445,7 @@ def seed_folder(out: Path, variant: str | None, seed: int) -> Path:
 def zoo_pairs(flag: str, assignments: list[str]) -> list[str]:
     """``key=value`` assignments as rl-zoo3's ``key:value`` (its ``-params`` and ``--env-kwargs``).
 
-    rl-zoo3 evaluates each value as Python. A bare word such as ``planning=off`` would be a name it cannot evaluate
+    rl-zoo3 evaluates each value as Python. A bare word such as ``value_reg=score`` would be a name it cannot evaluate
     (in every run, after its start-up), so it is refused here with the quoting that works.
 
     :param flag: the option the assignments came from, for the error message

@@ -36,12 +36,12 @@ def final_success(model, env_id: str, seed: int, n_episodes: int, planner: bool)
     """Deterministic success over ``n_episodes`` new episodes (at the goal when the episode ends) and the share of
     subgoals the planner proposed; ``planner=False`` evaluates the preference-trained policy alone."""
     eval_env = make_env(env_id, load_entry("dipper", env_id), seed=seed, n_envs=10)
-    plan_in_predict = model.plan_in_predict
-    model.plan_in_predict = planner and model.planning == "subgoal"
+    in_predict = model.planner.in_predict
+    model.planner.in_predict = planner and model.planner.mode == "subgoal"
     try:
         return evaluate(model, eval_env, n_episodes)
     finally:
-        model.plan_in_predict = plan_in_predict
+        model.planner.in_predict = in_predict
 
 
 def plot_success_curve(evaluations: Path, output: Path) -> None:

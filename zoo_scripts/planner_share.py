@@ -6,18 +6,19 @@ a planner).
     python zoo_scripts/planner_share.py runs/p9/switches/seed_1/dipper/FetchPushFixed-v0_1 --checkpoints --csv curve.csv
     python zoo_scripts/planner_share.py runs/p9/default/seed_0/dipper_nov/FetchPushFixed-v0_1 --algo dipper_nov --checkpoints
 
-With ``planning="subgoal"`` the planner over achieved states replaces the higher policy's proposal wherever its graph
-knows a path to the goal, so the success of the model as trained can be the planner's and the lower level's alone. The
-script evaluates the model (deterministic episodes) as trained, with the higher policy reset to untrained weights (if
-the success holds, the preference-trained policy does not matter where the planner decides), with the planner off (the
-preference-trained policy alone) and with the env's goal as every subgoal (the lower level alone: what the hierarchy
-adds is measured against it). For each it prints the episode success and the share of higher-level decisions the
-planner made, and writes them as ``planner_share.json`` in the zoo run folder; with ``--csv``, also one CSV row per run,
-model and case. With ``--checkpoints`` it also measures every checkpoint the run kept (``rl_model_<steps>_steps.zip``,
-from ``benchmark.py learning --save-freq``), so the four cases can be followed over training; each checkpoint of a run
-with ``VecNormalize`` is evaluated with the observation statistics it trained with (the model's own copy).
+With the subgoal planner (``planner_kwargs`` ``mode="subgoal"``) the planner over achieved states replaces the higher
+policy's proposal wherever its graph knows a path to the goal, so the success of the model as trained can be the
+planner's and the lower level's alone. The script evaluates the model (deterministic episodes) as trained, with the
+higher policy reset to untrained weights (if the success holds, the preference-trained policy does not matter where the
+planner decides), with the planner off (the preference-trained policy alone) and with the env's goal as every subgoal
+(the lower level alone: what the hierarchy adds is measured against it). For each it prints the episode success and the
+share of higher-level decisions the planner made, and writes them as ``planner_share.json`` in the zoo run folder; with
+``--csv``, also one CSV row per run, model and case. With ``--checkpoints`` it also measures every checkpoint the run
+kept (``rl_model_<steps>_steps.zip``, from ``benchmark.py learning --save-freq``), so the four cases can be followed
+over training; each checkpoint of a run with ``VecNormalize`` is evaluated with the observation statistics it trained
+with (the model's own copy).
 
-A DIPPER without the planner (``planning`` ``"off"`` or ``"waypoint"``: the paper's DIPPER, DIPPER-No-V) gets the three
+A DIPPER without the planner (planner mode ``"off"`` or ``"waypoint"``: the paper's DIPPER, DIPPER-No-V) gets the three
 cases that do not need it: as trained (its policy alone), with the higher policy untrained and with the env's goal as
 every subgoal; whether its success is the preference-trained policy's or the lower level's alone. So do the baselines
 with a learned lower level (``--algo hier``, ``piper``, ``saga``, ``hac``): whether their trained higher level adds to
@@ -133,7 +134,7 @@ def measure(
     results: dict[str, dict[str, float]] = {}
     model, env = fresh_model()
     steps = model.num_timesteps
-    has_planner = isinstance(model, DIPPER) and model.planning == "subgoal"
+    has_planner = isinstance(model, DIPPER) and model.planner.mode == "subgoal"
     cases = (CASES if has_planner else CASES_WITHOUT_PLANNER) + (SAMPLED_CASES if sampled else ())
     for case in cases:
         if results:  # every case after the first on a fresh copy: a case changes the model
@@ -142,7 +143,7 @@ def measure(
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":  # only a DIPPER with the planner has this case
             assert isinstance(model, DIPPER)
-            model.subgoal_graph = None
+            model.planner.graph = None
         results[case] = evaluate(model, env, n_episodes, **case_settings(case))
         env.close()
     return steps, results

@@ -59,6 +59,7 @@ from sb3_dipper.common.low_level import (
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
+from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import (
     InvalidSetting,
     as_float,
@@ -361,6 +362,17 @@ class HierarchicalAlgorithm(CheckedLoading):
         assert self.max_episode_steps is not None
         return math.ceil(self.max_episode_steps / self.option_steps)
 
+    def _higher_level_trajectory_buffer(self, capacity: int) -> TrajectoryBuffer:
+        """A store of ``capacity`` whole higher-level trajectories: :attr:`high_steps` options of subgoal actions."""
+        assert self.subgoal_space is not None
+        return TrajectoryBuffer(
+            capacity,
+            self.high_steps,
+            self.observation_space,  # type: ignore[arg-type]
+            self.subgoal_space.dim,
+            self.n_envs,
+        )
+
     @staticmethod
     def _normalizable(vec_normalize: VecNormalize | None) -> VecNormalize:
         """``vec_normalize``, or the error ``normalize_from_demos`` gives for an env without observation statistics."""
@@ -492,14 +504,15 @@ class HierarchicalAlgorithm(CheckedLoading):
         ``VecNormalize`` statistics. Its ``predict(obs, state, episode_start, deterministic)`` gives this model's
         actions; later training does not change it.
 
-        :raises NotImplementedError: for a model whose :meth:`predict` plans (DIPPER with ``planning != "off"``, unless
-            ``plan_in_predict=False``): its waypoints come from the subgoal graph, which is not exported; use :meth:`predict`
+        :raises NotImplementedError: for a model whose :meth:`predict` plans (DIPPER with a planner, unless its
+            ``in_predict`` is ``False``): its waypoints come from the subgoal graph, which is not exported; use
+            :meth:`predict`
         """
         if self._predict_plans():
             raise NotImplementedError(
                 f"This {type(self).__name__} plans over its subgoal graph, which export_policy does not export: "
-                "act with model.predict, export a model trained with planning='off', or (planning='subgoal') set "
-                "model.plan_in_predict = False to export the preference-trained policy alone"
+                "act with model.predict, export a model trained without a planner, or (planner mode 'subgoal') set "
+                "model.planner.in_predict = False to export the preference-trained policy alone"
             )
         self._refresh_low_normalizer()
         policy = self._hierarchical_policy(PolicyHighLevel(self.policy), self._acting_low_level())

@@ -8,20 +8,18 @@ its ``train()``. Its log keys go through :class:`LevelLogger` so the two levels 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.preprocessing import get_action_dim
-from stable_baselines3.common.vec_env import VecEnv, VecNormalize
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
+from stable_baselines3.common.vec_env import VecNormalize
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices
 
-from sb3_dipper.common.option_env import DictObs, PrimitiveTransition
+from sb3_dipper.common.option_env import DictObs, LevelVecEnv, PrimitiveTransition
 from sb3_dipper.common.subgoals import SubgoalSpace
 
 
@@ -38,7 +36,7 @@ def low_level_observation_space(observation_space: spaces.Dict, subgoal_space: S
     )
 
 
-class SubgoalVecEnv(VecEnv):
+class SubgoalVecEnv(LevelVecEnv):
     """The lower level's goal env as SB3 sees it: spaces and ``compute_reward``, never stepped.
 
     :param observation_space: the lower-level observation space
@@ -48,31 +46,8 @@ class SubgoalVecEnv(VecEnv):
     """
 
     def __init__(self, observation_space: spaces.Dict, action_space: spaces.Space, subgoal_space: SubgoalSpace, num_envs: int):
-        # VecEnv.__init__ asks the envs for their render_mode and warns when there is none; this facade renders nothing.
-        self.render_mode = None
-        super().__init__(num_envs, observation_space, action_space)
+        super().__init__(observation_space, action_space, num_envs, level="lower")
         self.subgoal_space = subgoal_space
-
-    def _not_stepped(self) -> RuntimeError:
-        return RuntimeError("The lower level's env is driven by the option layer; it cannot be reset or stepped directly.")
-
-    def reset(self) -> VecEnvObs:
-        raise self._not_stepped()
-
-    def step_async(self, actions: np.ndarray) -> None:
-        raise self._not_stepped()
-
-    def step_wait(self) -> VecEnvStepReturn:
-        raise self._not_stepped()
-
-    def close(self) -> None:
-        pass
-
-    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
-        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
-
-    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
-        setattr(self, attr_name, value)
 
     def env_method(
         self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
@@ -80,12 +55,6 @@ class SubgoalVecEnv(VecEnv):
         if method_name != "compute_reward":
             raise AttributeError(f"The lower level's env only provides compute_reward, not {method_name}")
         return [self.subgoal_space.compute_reward(*method_args, **method_kwargs) for _ in self._get_indices(indices)]
-
-    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
-        return [False for _ in self._get_indices(indices)]
-
-    def seed(self, seed: int | None = None) -> Sequence[int | None]:
-        return [None for _ in range(self.num_envs)]
 
 
 class SubgoalNormalizer:

@@ -19,13 +19,15 @@ observations a higher-level policy expects, as SB3's off-policy algorithms do.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize, unwrap_vec_normalize
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvObs, VecEnvStepReturn
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from sb3_dipper.common.subgoals import SubgoalSpace
 
@@ -84,6 +86,55 @@ def check_finite(observation: DictObs, env_indices: np.ndarray | None = None, so
                 f"{source} key {key!r} holds NaN or infinite values (env indices {bad_envs.tolist()}). "
                 "Fix the environment, or wrap it in stable_baselines3.common.vec_env.VecCheckNan to find the source."
             )
+
+
+class LevelVecEnv(VecEnv):
+    """One level's env as SB3 sees it: its spaces and ``env_method``, never reset nor stepped.
+
+    The option layer (:class:`OptionVecEnv`) drives the base env; an SB3 learner of one level (a lower or higher SAC
+    with ``HerReplayBuffer``) still needs a ``VecEnv`` with that level's spaces, and HER calls its ``compute_reward``
+    through ``env_method``, which a subclass provides.
+
+    :param observation_space: the level's observation space
+    :param action_space: the level's action space
+    :param num_envs: number of parallel envs of the option layer
+    :param level: the level, named in the error of a reset or step (``"lower"``, ``"higher"``)
+    """
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, num_envs: int, level: str) -> None:
+        # VecEnv.__init__ asks the envs for their render_mode and warns when there is none; this facade renders nothing.
+        self.render_mode = None
+        super().__init__(num_envs, observation_space, action_space)
+        self.level = level
+
+    def _not_stepped(self) -> RuntimeError:
+        return RuntimeError(
+            f"The {self.level} level's env is driven by the option layer; it cannot be reset or stepped directly."
+        )
+
+    def reset(self) -> VecEnvObs:
+        raise self._not_stepped()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        raise self._not_stepped()
+
+    def step_wait(self) -> VecEnvStepReturn:
+        raise self._not_stepped()
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def seed(self, seed: int | None = None) -> Sequence[int | None]:
+        return [None for _ in range(self.num_envs)]
 
 
 class OptionVecEnv(VecEnvWrapper):

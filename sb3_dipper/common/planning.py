@@ -11,21 +11,38 @@ visited voxel nearest to it (within ``2 * resolution``), from where the lower le
 per row whether it planned: a row is planned exactly where a path is known from the current voxel to a different goal
 node. Callers act on that flag, never on whether a waypoint differs from the goal (the goal itself is a planned
 waypoint once the path reaches it, and a goal that went through a normaliser or a float32 copy differs from itself).
+
+:class:`SubgoalPlanner` is what a higher level that proposes subgoals plans with (DIPPER's ``planner_kwargs``): it
+owns the graph and its settings, rebuilds the graph as trajectories finish, and steers the policy's proposals in
+training and, if asked, in :meth:`predict`.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+from sb3_dipper.common.validation import as_int, as_optional_float
+
+if TYPE_CHECKING:
+    from sb3_dipper.common.low_level import SubgoalNormalizer
 
 DictObs = dict[str, np.ndarray]
 EdgeCheck = Callable[[DictObs, np.ndarray], np.ndarray]
+# ``lower_value(start_observations, target_points) -> values``: the lower level's value of reaching each target point
+# (a subgoal, world units) from each start state (original observations).
+LowerValue = Callable[[DictObs, np.ndarray], np.ndarray]
+# Policy proposals for a batch of (normalised) observations: higher-level actions in ``[-1, 1]^d``, ``(n, d)``.
+Proposals = Callable[[DictObs], np.ndarray]
+
+PLANNING_MODES = ("off", "subgoal", "waypoint")
+# Rebuild the planning graph after this many new trajectories (a rebuild takes milliseconds).
+GRAPH_REBUILD_TRAJECTORIES = 4
 
 
 class Plan(NamedTuple):
@@ -174,3 +191,149 @@ class SubgoalGraph:
             if current != goal or not goal_voxel_visited:
                 waypoints[row] = self.node_points[current]
         return Plan(waypoints, planned)
+
+
+class SubgoalPlanner:
+    """Planning over achieved states for a higher level that proposes subgoals: a :class:`SubgoalGraph` and when and how
+    its waypoints steer the policy's proposals.
+
+    Per row, :meth:`plan` gives the waypoint toward the goal and whether the graph knew a path (:class:`Plan`), and
+    :meth:`propose` acts on it: with ``mode="subgoal"`` a planned row's subgoal is its waypoint, every other row's the
+    policy's proposal; with ``mode="waypoint"`` the policy proposes every subgoal, a planned row's toward its waypoint
+    in place of the goal. The graph is rebuilt from the stored trajectories every
+    :data:`GRAPH_REBUILD_TRAJECTORIES` finished ones (:meth:`trajectories_finished`). It is saved with the model.
+
+    :param mode: ``"off"`` (no planning), ``"subgoal"`` (where the graph knows a path to the goal, the waypoint on it
+        is the subgoal; elsewhere the policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the
+        waypoint instead of the goal)
+    :param lookahead: how many options along the shortest known path the waypoint lies
+    :param resolution: voxel size of the graph (default: the subgoal threshold)
+    :param value_threshold: keep a graph edge only if the lower level's value of reaching its target voxel from the
+        start of some option that took it is at least this (``None``: keep all)
+    :param in_predict: whether :meth:`plan` plans outside training (evaluation, deployment) as in training.
+        ``False`` (only with ``mode="subgoal"``): the planner steers the training proposals, and the policy alone
+        proposes every subgoal when the model is used
+    """
+
+    def __init__(
+        self,
+        mode: str = "off",
+        lookahead: int = 1,
+        resolution: float | None = None,
+        value_threshold: float | None = None,
+        in_predict: bool = True,
+    ) -> None:
+        if mode not in PLANNING_MODES:
+            raise ValueError(f"Unknown planning mode {mode!r}: choose one of {PLANNING_MODES}")
+        if not in_predict and mode != "subgoal":
+            raise ValueError(
+                f"in_predict=False needs mode='subgoal' (the planner replaces the policy's proposals in training only), "
+                f"got mode={mode!r}"
+            )
+        self.mode = mode
+        self.lookahead = as_int("lookahead", lookahead, 1)
+        self.resolution = as_optional_float("resolution", resolution, 0.0, low_open=True)
+        self.value_threshold = as_optional_float("value_threshold", value_threshold)
+        self.in_predict = in_predict
+        self.subgoal_space: SubgoalSpace | None = None
+        self.graph: SubgoalGraph | None = None
+        self._trajectories_since_rebuild = 0
+
+    def __getstate__(self) -> dict[str, Any]:
+        # A loaded planner counts the trajectories toward its next rebuild from zero.
+        return {**self.__dict__, "_trajectories_since_rebuild": 0}
+
+    def setup(self, subgoal_space: SubgoalSpace) -> None:
+        """Plan in ``subgoal_space``: an empty graph, unless the planner has one (a saved model's)."""
+        self.subgoal_space = subgoal_space
+        if self.mode != "off" and self.graph is None:
+            self.graph = SubgoalGraph(subgoal_space, self.resolution or subgoal_space.threshold)
+        self._trajectories_since_rebuild = 0
+
+    @property
+    def proposes_subgoals(self) -> bool:
+        """Whether its waypoints replace the policy's proposals in the planned rows (``mode="subgoal"``)."""
+        return self.mode == "subgoal"
+
+    @property
+    def settings(self) -> dict[str, Any]:
+        """Its constructor's arguments (the ``planner_kwargs`` that build it again)."""
+        return dict(
+            mode=self.mode,
+            lookahead=self.lookahead,
+            resolution=self.resolution,
+            value_threshold=self.value_threshold,
+            in_predict=self.in_predict,
+        )
+
+    @property
+    def plans_in_predict(self) -> bool:
+        """Whether :meth:`plan` plans outside training (then a policy exported without the graph would act otherwise)."""
+        return self.graph is not None and self.in_predict
+
+    def trajectories_finished(self, count: int, buffer: TrajectoryBuffer, lower_value: LowerValue) -> None:
+        """``count`` more trajectories finished in ``buffer``: rebuild the graph from it once enough have.
+
+        :param lower_value: the lower level's values that ``value_threshold`` compares (called only with a threshold)
+        """
+        self._trajectories_since_rebuild += count
+        if self.graph is None or self._trajectories_since_rebuild < GRAPH_REBUILD_TRAJECTORIES:
+            return
+        threshold = self.value_threshold
+        edge_check = None if threshold is None else lambda starts, targets: lower_value(starts, targets) >= threshold
+        self.graph.rebuild(buffer, edge_check)
+        self._trajectories_since_rebuild = 0
+
+    def plan(self, observation: DictObs, normalizer: SubgoalNormalizer | None, training: bool) -> Plan:
+        """The waypoint toward each row's goal (world units) and whether the graph planned the row: never without a
+        graph, nor outside training without ``in_predict``.
+
+        :param observation: a batch of observations as the env returns them
+        :param normalizer: what normalised the observation's goals (``None``: nothing did)
+        :param training: whether the proposals are collected for training
+        """
+        assert self.subgoal_space is not None, "setup() gives the planner its subgoal space"
+        achieved, desired = observation["achieved_goal"], observation["desired_goal"]
+        if normalizer is not None:
+            achieved = normalizer.unnormalize_goal(achieved, "achieved_goal")
+            desired = normalizer.unnormalize_goal(desired, "desired_goal")
+        space = self.subgoal_space
+        goals = space.project(desired)
+        if self.graph is None or not (training or self.in_predict):
+            return Plan(np.array(goals, dtype=np.float32, copy=True), np.zeros(goals.shape[0], dtype=bool))
+        return self.graph.plan(space.project(achieved), goals, self.lookahead)
+
+    def propose(
+        self, observation: DictObs, proposals: Proposals, normalizer: SubgoalNormalizer | None, training: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The higher-level actions for ``observation``: the policy's ``proposals``, steered by :meth:`plan`.
+
+        :param observation: a batch of observations as the env returns them
+        :param proposals: the policy's actions for a batch of observations (with ``mode="waypoint"`` it gets the
+            observation with each planned row's goal replaced by its waypoint)
+        :param normalizer: what normalised the observation's goals (``None``: nothing did)
+        :param training: whether the proposals are collected for training
+        :return: the actions in ``[-1, 1]^d``, and which rows' subgoal is the planner's waypoint (only with
+            ``mode="subgoal"``; with ``"waypoint"`` the policy proposes every subgoal)
+        """
+        assert self.subgoal_space is not None, "setup() gives the planner its subgoal space"
+        plan = self.plan(observation, normalizer, training)
+        policy_input = self._with_waypoints_as_goals(observation, plan, normalizer) if self.mode == "waypoint" else observation
+        actions = proposals(policy_input)
+        if not self.proposes_subgoals:
+            return actions, np.zeros(actions.shape[0], dtype=bool)
+        actions[plan.planned] = self.subgoal_space.to_unit(plan.waypoints[plan.planned])
+        return actions, plan.planned
+
+    def _with_waypoints_as_goals(self, observation: DictObs, plan: Plan, normalizer: SubgoalNormalizer | None) -> DictObs:
+        """The observation with each planned row's goal replaced by its waypoint; the other rows are the observation's
+        own."""
+        assert self.subgoal_space is not None
+        space, rows = self.subgoal_space, plan.planned
+        if not rows.any():
+            return observation
+        goals = np.array(observation["desired_goal"], copy=True)
+        planned = goals[rows] if normalizer is None else normalizer.unnormalize_goal(goals[rows], "desired_goal")
+        planned[..., list(space.indices) if space.indices is not None else slice(None)] = plan.waypoints[rows]
+        goals[rows] = planned if normalizer is None else normalizer.normalize_goal(planned, "desired_goal")
+        return {**observation, "desired_goal": goals}

@@ -105,6 +105,50 @@ def sample_trajectory_pairs(
     )
 
 
+def sample_segment_pairs(
+    buffer: TrajectoryBuffer,
+    n_pairs: int,
+    segment_length: int,
+    hindsight_goal_prob: float,
+    rng: np.random.Generator,
+) -> TrajectoryPairs:
+    """``n_pairs`` unlabelled pairs of segments of ``segment_length`` consecutive steps, each cut from a stored episode.
+
+    A segment starts uniformly where it fits in its episode (an episode shorter than ``segment_length`` gives a shorter,
+    masked segment). With ``hindsight_goal_prob`` both segments of a pair get one goal, the achieved goal after a random
+    step of one of them; otherwise each keeps its own goal. Primitive actions have no hindsight counterpart, so
+    ``reached_actions`` are the actions.
+    """
+    if len(buffer) < 1:
+        raise ValueError("Segment pairs need at least one finished episode in the trajectory buffer")
+    episodes = rng.integers(len(buffer), size=(2, n_pairs))
+    lengths = buffer.lengths[episodes]
+    starts = (rng.random((2, n_pairs)) * (np.maximum(lengths - segment_length, 0) + 1)).astype(np.int64)
+    steps = starts[..., None] + np.arange(segment_length)
+    mask = steps < lengths[..., None]
+    steps = np.minimum(steps, buffer.max_length - 1)
+    rows = episodes[..., None]
+    observations = {key: value[rows, steps] for key, value in buffer.observations.items()}
+    next_achieved_goals = buffer.next_achieved_goals[rows, steps]
+
+    pair_index = np.arange(n_pairs)
+    share_goal = rng.random(n_pairs) < hindsight_goal_prob
+    source = rng.integers(2, size=n_pairs)
+    step = (rng.random(n_pairs) * mask[source, pair_index].sum(axis=-1)).astype(np.int64)
+    hindsight_goals = next_achieved_goals[source, pair_index, step]
+    observations["desired_goal"][:, share_goal] = hindsight_goals[None, share_goal, None, :]
+
+    actions = buffer.actions[rows, steps]
+    return TrajectoryPairs(
+        observations=observations,
+        actions=actions,
+        reached_actions=actions,
+        next_achieved_goals=next_achieved_goals,
+        mask=mask,
+        labels=np.full(n_pairs, np.nan, dtype=np.float32),
+    )
+
+
 def truncate_at_first_arrival(pairs: TrajectoryPairs, goal_reached: GoalReachedFn) -> TrajectoryPairs:
     """End both trajectories of a pair at the first option after which either of them reached the pair's goal.
 
@@ -125,6 +169,62 @@ def truncate_at_first_arrival(pairs: TrajectoryPairs, goal_reached: GoalReachedF
         mask=pairs.mask & keep[None],
         labels=pairs.labels,
     )
+
+
+class PairSampler(ABC):
+    """Draws the unlabelled pairs an algorithm has labelled, from its trajectory buffer."""
+
+    #: the fewest finished trajectories (or episodes) in the buffer it draws pairs from
+    min_trajectories: int = 1
+    #: T, the steps of each trajectory of a pair (``None``: whole trajectories, the buffer's ``max_length``)
+    pair_length: int | None = None
+
+    @abstractmethod
+    def sample(self, buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator) -> TrajectoryPairs:
+        """``n_pairs`` unlabelled pairs (labels NaN) drawn from ``buffer`` with ``rng``."""
+
+
+class TrajectoryPairSampler(PairSampler):
+    """Pairs of whole higher-level trajectories (:func:`sample_trajectory_pairs`, PIPER's pairs), optionally ended at
+    the first arrival at the goal (:func:`truncate_at_first_arrival`).
+
+    :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
+    :param subgoal_space: the higher level's subgoal space (for the hindsight actions)
+    :param goal_reached: end each pair when the first of its trajectories reaches the goal, as this tells (``None``:
+        whole trajectories)
+    """
+
+    min_trajectories = 2
+
+    def __init__(
+        self, hindsight_goal_prob: float, subgoal_space: SubgoalSpace, goal_reached: GoalReachedFn | None = None
+    ) -> None:
+        self.hindsight_goal_prob = hindsight_goal_prob
+        self.subgoal_space = subgoal_space
+        self.goal_reached = goal_reached
+
+    def sample(self, buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator) -> TrajectoryPairs:
+        pairs = sample_trajectory_pairs(buffer, n_pairs, self.hindsight_goal_prob, self.subgoal_space, rng)
+        return pairs if self.goal_reached is None else truncate_at_first_arrival(pairs, self.goal_reached)
+
+
+class SegmentPairSampler(PairSampler):
+    """Pairs of segments of ``segment_length`` primitive steps cut from stored episodes (:func:`sample_segment_pairs`,
+    DPO-FLAT's pairs).
+
+    :param segment_length: primitive steps per segment
+    :param hindsight_goal_prob: probability that both segments of a pair share a goal achieved by one of them
+    """
+
+    min_trajectories = 1
+
+    def __init__(self, segment_length: int, hindsight_goal_prob: float) -> None:
+        self.segment_length = segment_length
+        self.hindsight_goal_prob = hindsight_goal_prob
+        self.pair_length = segment_length
+
+    def sample(self, buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator) -> TrajectoryPairs:
+        return sample_segment_pairs(buffer, n_pairs, self.segment_length, self.hindsight_goal_prob, rng)
 
 
 def labels_from_scores(scores: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ authors' PIPER code (https://github.com/Utsavz/piper), from which the preference
 from __future__ import annotations
 
 import copy
+import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
@@ -28,44 +29,92 @@ from sb3_dipper.common.losses import (
 )
 from sb3_dipper.common.low_level import sac_state_value, sac_value_gap
 from sb3_dipper.common.option_env import DictObs, low_level_observation
-from sb3_dipper.common.planning import Plan, SubgoalGraph
+from sb3_dipper.common.planning import GRAPH_REBUILD_TRAJECTORIES as GRAPH_REBUILD_TRAJECTORIES  # public here first
+from sb3_dipper.common.planning import PLANNING_MODES as PLANNING_MODES  # public here first
+from sb3_dipper.common.planning import SubgoalPlanner
+from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
 from sb3_dipper.common.preferences import (
-    PreferenceDataset,
-    PreferenceSource,
-    PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
-    add_new_labels,
+    TrajectoryPairSampler,
     flat_pair_observations,
-    pairs_due,
     progress_labels,
-    read_preference_data,
-    sample_trajectory_pairs,
-    save_preference_data,
-    truncate_at_first_arrival,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import (
     InvalidSetting,
     as_choice,
     as_float,
     as_int,
-    as_optional_float,
+    check_keyword_arguments,
     sparse_goal_reached_fn,
 )
 from sb3_dipper.dipper.policies import DIPPERPolicy, MlpPolicy, MultiInputPolicy
-from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 
 SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
-PLANNING_MODES = ("off", "subgoal", "waypoint")
 REFERENCE_POLICIES = ("uniform", "averaged")
-# Rebuild the planning graph after this many new trajectories (a rebuild takes milliseconds).
-GRAPH_REBUILD_TRAJECTORIES = 4
+# DIPPER's planning parameters before planner_kwargs, each with the planner_kwargs key (SubgoalPlanner parameter) it is.
+DEPRECATED_PLANNING_PARAMETERS = {
+    "planning": "mode",
+    "plan_in_predict": "in_predict",
+    "planning_lookahead": "lookahead",
+    "planning_resolution": "resolution",
+    "planning_value_threshold": "value_threshold",
+}
 
 
-class DIPPER(HierarchicalAlgorithm):
+def planner_kwargs_with(planner_kwargs: dict[str, Any] | None, deprecated: dict[str, Any]) -> dict[str, Any]:
+    """``planner_kwargs`` with the deprecated planning parameters that were given (not ``None``) in place of their keys,
+    with a ``DeprecationWarning`` naming ``planner_kwargs``.
+
+    :param planner_kwargs: DIPPER's ``planner_kwargs``
+    :param deprecated: the deprecated parameters by name (:data:`DEPRECATED_PLANNING_PARAMETERS`), ``None`` where not given
+    """
+    kwargs = dict(planner_kwargs or {})
+    given = {name: value for name, value in deprecated.items() if value is not None}
+    if given:
+        replacement = {DEPRECATED_PLANNING_PARAMETERS[name]: value for name, value in given.items()}
+        warnings.warn(
+            f"DIPPER's {', '.join(given)} {'is' if len(given) == 1 else 'are'} deprecated: pass "
+            f"planner_kwargs={replacement!r} instead (the keys of sb3_dipper.common.planning.SubgoalPlanner)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        kwargs.update(replacement)
+    return kwargs
+
+
+class _PlannerSetting:
+    """A DIPPER attribute that the planner holds now (``model.planner``); reading or setting it warns.
+
+    :param planner_attribute: the planner's attribute
+    """
+
+    def __init__(self, planner_attribute: str) -> None:
+        self.planner_attribute = planner_attribute
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def _warn(self) -> None:
+        warnings.warn(
+            f"DIPPER.{self.name} is deprecated: use model.planner.{self.planner_attribute}", DeprecationWarning, stacklevel=3
+        )
+
+    def __get__(self, model: DIPPER | None, owner: type | None = None) -> Any:
+        if model is None:
+            return self
+        self._warn()
+        return getattr(model.planner, self.planner_attribute)
+
+    def __set__(self, model: DIPPER, value: Any) -> None:
+        self._warn()
+        setattr(model.planner, self.planner_attribute, value)
+
+
+class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     """DIPPER (Singh et al., ICLR 2026): the higher level learns subgoals from preferences by DPO, the lower by SAC+HER.
 
     The higher level is a squashed-Gaussian policy over subgoals trained only by the DIPPER loss (Eq. 9,
@@ -106,21 +155,25 @@ class DIPPER(HierarchicalAlgorithm):
         keeps each update near the last; needs ``policy_kwargs`` ``acting_tau`` below 1)
     :param hindsight_actions: train on the subgoal each option actually reached instead of the one proposed
     :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
-    :param planning: planning over achieved states (:class:`~sb3_dipper.common.planning.SubgoalGraph`): ``"off"`` (the
-        paper), ``"subgoal"`` (where the graph knows a path to the goal, propose the waypoint on it; elsewhere the
-        policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint instead of the goal).
-        The planner says per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`): a row is planned
-        where the graph knows a path from the current voxel to the goal's, and only there does its waypoint replace the
-        policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's (random subgoals
-        excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs' last subgoal was
-        the planner's
-    :param plan_in_predict: whether :meth:`predict` (evaluation, deployment) plans as training does. ``False`` (only
-        with ``planning="subgoal"``): the planner steers the training proposals, and the preference-trained policy
-        proposes every subgoal when the model is used; such a model can be exported (:meth:`export_policy`)
-    :param planning_lookahead: how many options along the shortest known path the waypoint lies
-    :param planning_resolution: voxel size of the planning graph (default: the subgoal threshold)
-    :param planning_value_threshold: keep a graph edge only if the lower level's value ``min_i Q_i(s, g, mu(s, g))`` of
-        reaching its target voxel from the start of some option that took it is at least this (``None``: keep all)
+    :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
+        :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
+        ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
+        elsewhere the policy proposes) or ``"waypoint"`` (the policy always proposes, conditioned on the waypoint
+        instead of the goal); ``lookahead`` (options along the shortest known path to the waypoint), ``resolution``
+        (voxel size of the graph; default: the subgoal threshold), ``value_threshold`` (keep a graph edge only if the
+        lower level's value ``min_i Q_i(s, g, mu(s, g))`` of reaching its target voxel from the start of some option
+        that took it is at least this) and ``in_predict`` (``False``, only with ``"subgoal"``: the planner steers the
+        training proposals, and the preference-trained policy proposes every subgoal in :meth:`predict`; such a model
+        can be exported, :meth:`export_policy`). For example ``dict(mode="subgoal", lookahead=2)``. The planner says
+        per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`), and only there does its waypoint
+        replace the policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's
+        (random subgoals excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs'
+        last subgoal was the planner's
+    :param planning: deprecated, ``planner_kwargs`` ``mode``
+    :param plan_in_predict: deprecated, ``planner_kwargs`` ``in_predict``
+    :param planning_lookahead: deprecated, ``planner_kwargs`` ``lookahead``
+    :param planning_resolution: deprecated, ``planner_kwargs`` ``resolution``
+    :param planning_value_threshold: deprecated, ``planner_kwargs`` ``value_threshold``
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
     :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
         ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
@@ -163,6 +216,14 @@ class DIPPER(HierarchicalAlgorithm):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
     policy: DIPPERPolicy
+    # Saved with the model (load() restores it before _setup_model), with its graph, so that a loaded model plans as it did.
+    planner: SubgoalPlanner
+    planning = _PlannerSetting("mode")
+    plan_in_predict = _PlannerSetting("in_predict")
+    planning_lookahead = _PlannerSetting("lookahead")
+    planning_resolution = _PlannerSetting("resolution")
+    planning_value_threshold = _PlannerSetting("value_threshold")
+    subgoal_graph = _PlannerSetting("graph")
     # The lower update count when the lower critic was last copied into the snapshot V^L_m (saved with the model, as
     # the snapshot is), so that a loaded model refreshes the snapshot on the schedule it had.
     _value_snapshot_updates: int = 0
@@ -190,9 +251,10 @@ class DIPPER(HierarchicalAlgorithm):
         reference: str = "uniform",
         hindsight_actions: bool = False,
         truncate_at_goal: bool = False,
-        planning: str = "off",
-        plan_in_predict: bool = True,
-        planning_lookahead: int = 1,
+        planner_kwargs: dict[str, Any] | None = None,
+        planning: str | None = None,
+        plan_in_predict: bool | None = None,
+        planning_lookahead: int | None = None,
         planning_resolution: float | None = None,
         planning_value_threshold: float | None = None,
         trajectory_buffer_size: int = 5000,
@@ -261,6 +323,16 @@ class DIPPER(HierarchicalAlgorithm):
             seed=seed,
             device=device,
         )
+        planner_kwargs = planner_kwargs_with(
+            planner_kwargs,
+            dict(
+                planning=planning,
+                plan_in_predict=plan_in_predict,
+                planning_lookahead=planning_lookahead,
+                planning_resolution=planning_resolution,
+                planning_value_threshold=planning_value_threshold,
+            ),
+        )
         self.beta = beta
         self.value_reg_coef = value_reg_coef
         self.value_steps = value_steps
@@ -276,13 +348,7 @@ class DIPPER(HierarchicalAlgorithm):
         self.reference = reference
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
-        self.planning = planning
-        self.plan_in_predict = plan_in_predict
-        self.planning_lookahead = planning_lookahead
-        self.planning_resolution = planning_resolution
-        self.planning_value_threshold = planning_value_threshold
-        # Saved with the model (load() restores it before _setup_model), so a loaded model plans as it did.
-        self.subgoal_graph: SubgoalGraph | None = None
+        self.planner_kwargs = planner_kwargs
         self.trajectory_buffer_size = trajectory_buffer_size
         self.preference_source = preference_source
         if _init_setup_model:
@@ -305,57 +371,70 @@ class DIPPER(HierarchicalAlgorithm):
         )
         self.reference = as_choice("reference", self.reference, REFERENCE_POLICIES)
         self.goal_subgoal_prob = as_float("goal_subgoal_prob", self.goal_subgoal_prob, 0.0, 1.0)
-        self.planning_lookahead = as_int("planning_lookahead", self.planning_lookahead, 1)
-        self.planning_resolution = as_optional_float("planning_resolution", self.planning_resolution, 0.0, low_open=True)
-        self.planning_value_threshold = as_optional_float("planning_value_threshold", self.planning_value_threshold)
         self.trajectory_buffer_size = as_int(
             "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
         )
-        self.planning = as_choice("planning", self.planning, PLANNING_MODES)
-        if not self.plan_in_predict and self.planning != "subgoal":
-            raise InvalidSetting(
-                "plan_in_predict",
-                "plan_in_predict=False needs planning='subgoal' (the planner replaces the policy's proposals in "
-                f"training only), got planning={self.planning!r}",
-            )
+        self._check_planner()
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.subgoal_space.unit_box, self.lr_schedule, **self.policy_kwargs
         ).to(self.device)
-        self.trajectory_buffer = TrajectoryBuffer(
-            self.trajectory_buffer_size,
-            self.high_steps,
-            self.observation_space,  # type: ignore[arg-type]
-            self.subgoal_space.dim,
-            self.n_envs,
+        goal_reached, labeler = None, None
+        if self.env is not None:  # a model without an env labels nothing until it gets one
+            goal_reached = sparse_goal_reached_fn(self.env)
+            value_score = self._pair_value_score if self.value_reg == "score" else None
+            labeler = preference_labeler(
+                self.preference_source,
+                self.env,
+                self.subgoal_space,
+                self.seed,
+                value_score,
+                goal_reached,
+                label_budget=self.n_preference_pairs,
+            )
+        self.preference_pipeline = PreferencePipeline(
+            self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
+            self.n_preference_pairs,
+            TrajectoryPairSampler(
+                self.hindsight_goal_prob, self.subgoal_space, goal_reached if self.truncate_at_goal else None
+            ),
+            labeler,
         )
-        self.preferences = PreferenceDataset(self.n_preference_pairs)
-        if self.planning != "off" and self.subgoal_graph is None:
-            self.subgoal_graph = SubgoalGraph(self.subgoal_space, self.planning_resolution or self.subgoal_space.threshold)
-        self._trajectories_since_graph = 0
+        self.planner.setup(self.subgoal_space)
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
         if self.reference == "averaged" and self.policy.averaged_actor is None:
             raise ValueError("reference='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 (e.g. 0.05)")
         # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
-        self._labeler: PreferenceSource | None = None
         # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
         self.last_planned = np.zeros(self.n_envs, dtype=bool)
-        if self.env is not None:
-            self._goal_reached = sparse_goal_reached_fn(self.env)
-            value_score = self._pair_value_score if self.value_reg == "score" else None
-            script = PrimitiveInTheLoopLabeler(self._goal_reached, value_score)
-            self._labeler = preference_source_from(
-                self.preference_source, script, self.env, self.subgoal_space, self.seed, self.n_preference_pairs
-            )
+
+    def _check_planner(self) -> None:
+        """Build :attr:`planner` from ``planner_kwargs``, checked as the constructor checks them. A loaded model's planner
+        keeps its graph, and ``planner_kwargs`` given to ``load`` replace its keys; so do the planning attributes of a
+        model saved before ``planner_kwargs`` (or given to ``load`` by their deprecated names)."""
+        legacy_names = (*DEPRECATED_PLANNING_PARAMETERS, "subgoal_graph", "_trajectories_since_graph")
+        legacy = {name: self.__dict__.pop(name) for name in legacy_names if name in self.__dict__}
+        loaded: SubgoalPlanner | None = self.__dict__.get("planner")
+        settings = {**(loaded.settings if loaded is not None else {}), **self.planner_kwargs}
+        settings.update({key: legacy[name] for name, key in DEPRECATED_PLANNING_PARAMETERS.items() if name in legacy})
+        check_keyword_arguments(SubgoalPlanner, settings, source="planner_kwargs")
+        try:
+            planner = SubgoalPlanner(**settings)
+        except ValueError as error:
+            raise InvalidSetting("planner_kwargs", str(error)) from error
+        planner.graph = legacy.get("subgoal_graph", loaded.graph if loaded is not None else None)
+        if loaded is not None or legacy:
+            self.planner_kwargs = settings
+        self.planner = planner
 
     def _predict_plans(self) -> bool:
-        return self.subgoal_graph is not None and self.plan_in_predict
+        return self.planner.plans_in_predict
 
     def _option_metric_keys(self) -> tuple[str, ...]:
-        planned = ("planned_share",) if self.planning == "subgoal" else ()
+        planned = ("planned_share",) if self.planner.proposes_subgoals else ()
         return (*super()._option_metric_keys(), *planned)
 
     def learn(
@@ -372,24 +451,21 @@ class DIPPER(HierarchicalAlgorithm):
     # ---------------------------------------------------------------------------------------------------- acting
 
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
-        return self._proposals(observation, deterministic, self.subgoal_graph if self.plan_in_predict else None)
+        return self._proposals(observation, deterministic, training=False)
 
     def _collecting_high_level_actions(self, observation: DictObs) -> np.ndarray:
-        return self._proposals(observation, deterministic=False, graph=self.subgoal_graph)
+        return self._proposals(observation, deterministic=False, training=True)
 
-    def _proposals(self, observation: DictObs, deterministic: bool, graph: SubgoalGraph | None) -> np.ndarray:
-        """The policy's subgoals; with ``planning="subgoal"``, the planner's waypoints in the rows ``graph`` planned."""
-        plan = self._plan(observation, graph) if graph is not None else None
-        policy_input = observation
-        if plan is not None and self.planning == "waypoint":
-            policy_input = self._with_waypoints_as_goals(observation, plan)
-        actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
-        actions = np.asarray(actions, dtype=np.float32).reshape(-1, self.policy.action_space.shape[0])  # type: ignore[index]
-        self.last_planned = np.zeros(actions.shape[0], dtype=bool)
-        if plan is not None and self.planning == "subgoal":
-            assert self.subgoal_space is not None
-            self.last_planned = plan.planned
-            actions[plan.planned] = self.subgoal_space.to_unit(plan.waypoints[plan.planned])
+    def _proposals(self, observation: DictObs, deterministic: bool, training: bool) -> np.ndarray:
+        """The policy's subgoals, steered by the planner (:meth:`~sb3_dipper.common.planning.SubgoalPlanner.propose`);
+        :attr:`last_planned` records which rows' subgoal is the planner's waypoint."""
+        action_dim = self.policy.action_space.shape[0]  # type: ignore[index]
+
+        def policy_proposals(policy_input: DictObs) -> np.ndarray:
+            actions, _ = self.policy.predict(policy_input, deterministic=deterministic)  # type: ignore[arg-type]
+            return np.asarray(actions, dtype=np.float32).reshape(-1, action_dim)
+
+        actions, self.last_planned = self.planner.propose(observation, policy_proposals, self.low_normalizer, training)
         return actions
 
     def _training_high_level_actions(self, observation: DictObs) -> np.ndarray:
@@ -400,36 +476,14 @@ class DIPPER(HierarchicalAlgorithm):
             goal_rows = (self._rng.random(self.n_envs) < self.goal_subgoal_prob) & ~self.last_random_subgoals
             actions[goal_rows] = self._subgoal_actions(observation["desired_goal"])[goal_rows]
             self.last_planned &= ~goal_rows
-        if self.planning == "subgoal" and self.num_timesteps >= self.learning_starts:
+        if self.planner.proposes_subgoals and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
 
-    def _plan(self, observation: DictObs, graph: SubgoalGraph) -> Plan:
-        """The graph's waypoints toward each row's goal, in the subgoal space's world units, and the rows it planned."""
+    def _lower_level_value(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
+        """The lower level's value ``min_i Q_i(s, g, mu(s, g))`` of reaching each target (world units) from each start
+        state, which the planner's ``value_threshold`` compares."""
         assert self.subgoal_space is not None
-        achieved, desired = observation["achieved_goal"], observation["desired_goal"]
-        if self.low_normalizer is not None:
-            achieved = self.low_normalizer.unnormalize_goal(achieved, "achieved_goal")
-            desired = self.low_normalizer.unnormalize_goal(desired, "desired_goal")
-        space = self.subgoal_space
-        return graph.plan(space.project(achieved), space.project(desired), self.planning_lookahead)
-
-    def _with_waypoints_as_goals(self, observation: DictObs, plan: Plan) -> DictObs:
-        """The observation with each planned row's goal replaced by its waypoint (``planning="waypoint"``); the other
-        rows are the observation's own."""
-        assert self.subgoal_space is not None
-        space, normalizer, rows = self.subgoal_space, self.low_normalizer, plan.planned
-        if not rows.any():
-            return observation
-        goals = np.array(observation["desired_goal"], copy=True)
-        planned = goals[rows] if normalizer is None else normalizer.unnormalize_goal(goals[rows], "desired_goal")
-        planned[..., list(space.indices) if space.indices is not None else slice(None)] = plan.waypoints[rows]
-        goals[rows] = planned if normalizer is None else normalizer.normalize_goal(planned, "desired_goal")
-        return {**observation, "desired_goal": goals}
-
-    def _reachable_by_lower_level(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
-        """Whether the lower level's value of reaching each target from each start state passes the threshold."""
-        assert self.subgoal_space is not None and self.planning_value_threshold is not None
         values = []
         with th.no_grad():
             for chunk in range(0, targets.shape[0], 4096):
@@ -438,7 +492,7 @@ class DIPPER(HierarchicalAlgorithm):
                 low_obs = self.low_level.tensor_obs(low_level_observation(batch, targets[rows], self.subgoal_space))
                 actions = self.lower.actor(low_obs, deterministic=True)
                 values.append(th.cat(self.lower.critic(low_obs, actions), dim=1).min(dim=1).values.cpu().numpy())
-        return np.concatenate(values) >= self.planning_value_threshold
+        return np.concatenate(values)
 
     def _store_option(
         self,
@@ -451,11 +505,7 @@ class DIPPER(HierarchicalAlgorithm):
     ) -> None:
         assert self.option_env is not None and self.option_env.reached_obs is not None
         self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
-        self._trajectories_since_graph += int(np.sum(dones))
-        if self.subgoal_graph is not None and self._trajectories_since_graph >= GRAPH_REBUILD_TRAJECTORIES:
-            edge_check = self._reachable_by_lower_level if self.planning_value_threshold is not None else None
-            self.subgoal_graph.rebuild(self.trajectory_buffer, edge_check)
-            self._trajectories_since_graph = 0
+        self.planner.trajectories_finished(int(np.sum(dones)), self.trajectory_buffer, self._lower_level_value)
 
     def _end_open_episodes(self) -> None:
         super()._end_open_episodes()
@@ -466,7 +516,9 @@ class DIPPER(HierarchicalAlgorithm):
     def train(self) -> None:
         """Lower SAC updates (which also move V^L toward V^L_m), new labels, then the higher-level DIPPER updates."""
         self._train_low_level()
-        self._label_new_pairs()
+        new_pairs = self.preference_pipeline.label_new_pairs(self.num_timesteps, self._total_timesteps, self._rng)
+        if new_pairs is not None:
+            self._record_label_diagnostics(new_pairs)
         if len(self.preferences) == 0:
             return
         self._train_high_level()
@@ -524,23 +576,6 @@ class DIPPER(HierarchicalAlgorithm):
             self.logger.record("train/high_pref_accuracy", float(np.mean(accuracies)))
         if value_gaps:
             self.logger.record("train/high_value_gap", float(np.mean(value_gaps)))
-
-    def _label_new_pairs(self) -> None:
-        """Label new pairs so the dataset grows in step with training, up to the label budget."""
-        assert self.subgoal_space is not None and self._labeler is not None
-        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
-        add_new_labels(self.preferences, self._labeler, None)
-        n_new = pairs_due(
-            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
-        )
-        if n_new == 0 or len(self.trajectory_buffer) < 2:
-            return
-        pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
-        if self.truncate_at_goal:
-            pairs = truncate_at_first_arrival(pairs, self._goal_reached)
-        pairs.labels = self._labeler.label(pairs)
-        self._record_label_diagnostics(pairs)
-        add_new_labels(self.preferences, self._labeler, pairs)
 
     def _record_label_diagnostics(self, pairs: TrajectoryPairs) -> None:
         """What the new labels carry, and how the policy does on pairs it has not trained on yet (logged as means over
@@ -642,15 +677,15 @@ class DIPPER(HierarchicalAlgorithm):
 
     # ---------------------------------------------------------------------------------------------------- saving
 
+    def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
+        """SB3's ``save``. The saved ``planner_kwargs`` are the planner's settings as it acts (changed through
+        ``model.planner`` or not), so that ``load`` restores that planner and a key given to ``load`` replaces just its own.
+        """
+        self.planner_kwargs = {**self.planner_kwargs, **self.planner.settings}
+        super().save(path, exclude, include)
+
     def _excluded_save_params(self) -> list[str]:
-        return [
-            *super()._excluded_save_params(),
-            "trajectory_buffer",
-            "preferences",
-            "_labeler",
-            "_goal_reached",
-            "last_planned",
-        ]
+        return [*super()._excluded_save_params(), "last_planned"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
@@ -671,17 +706,7 @@ class DIPPER(HierarchicalAlgorithm):
 
     def _save_high_level_data(self, path: str) -> None:
         """Trajectories and labelled pairs, as npz (read back without pickle)."""
-        save_preference_data(sibling_path(path, ".high.npz"), self.trajectory_buffer, self.preferences)
+        self.preference_pipeline.save(sibling_path(path, ".high.npz"))
 
     def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
-        trajectories, preferences = read_preference_data(
-            sibling_path(path, ".high.npz"), self.trajectory_buffer, self.n_preference_pairs
-        )
-
-        def install() -> None:
-            self.trajectory_buffer.load_state_dict(trajectories)
-            self.preferences = preferences
-            if self._labeler is not None:
-                self._labeler.dataset_restored(self.preferences.handed_ids)
-
-        return install
+        return self.preference_pipeline.read(sibling_path(path, ".high.npz"))

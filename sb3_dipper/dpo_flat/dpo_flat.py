@@ -40,29 +40,14 @@ from sb3_dipper.common.files import replay_buffer_path
 from sb3_dipper.common.hierarchical import sibling_path
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.losses import dipper_loss, preference_accuracy, preferred_nll, tie_share, uniform_log_prob
-from sb3_dipper.common.preferences import (
-    PreferenceDataset,
-    PreferenceSource,
-    PrimitiveInTheLoopLabeler,
-    TrajectoryPairs,
-    add_new_labels,
-    flat_pair_observations,
-    load_preference_data,
-    pairs_due,
-    save_preference_data,
-)
+from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
+from sb3_dipper.common.preferences import PreferenceSource, SegmentPairSampler, TrajectoryPairs, flat_pair_observations
+from sb3_dipper.common.preferences import sample_segment_pairs as sample_segment_pairs  # public here first
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import (
-    as_float,
-    as_int,
-    as_optional_int,
-    as_train_freq,
-    check_goal_observation_space,
-    sparse_goal_reached_fn,
-)
+from sb3_dipper.common.validation import as_float, as_int, as_optional_int, as_train_freq, check_goal_observation_space
 from sb3_dipper.dipper.policies import DIPPERPolicy
 from sb3_dipper.dpo_flat.policies import MlpPolicy, MultiInputPolicy
-from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 
 SelfDPOFlat = TypeVar("SelfDPOFlat", bound="DPOFlat")
 
@@ -70,50 +55,6 @@ DictObs = dict[str, np.ndarray]
 
 # Episodes a model loaded without an env keeps room for (it only predicts).
 PREDICT_ONLY_BUFFER_SIZE = 1
-
-
-def sample_segment_pairs(
-    buffer: TrajectoryBuffer,
-    n_pairs: int,
-    segment_length: int,
-    hindsight_goal_prob: float,
-    rng: np.random.Generator,
-) -> TrajectoryPairs:
-    """``n_pairs`` unlabelled pairs of segments of ``segment_length`` consecutive steps, each cut from a stored episode.
-
-    A segment starts uniformly where it fits in its episode (an episode shorter than ``segment_length`` gives a shorter,
-    masked segment). With ``hindsight_goal_prob`` both segments of a pair get one goal, the achieved goal after a random
-    step of one of them; otherwise each keeps its own goal. Primitive actions have no hindsight counterpart, so
-    ``reached_actions`` are the actions.
-    """
-    if len(buffer) < 1:
-        raise ValueError("Segment pairs need at least one finished episode in the trajectory buffer")
-    episodes = rng.integers(len(buffer), size=(2, n_pairs))
-    lengths = buffer.lengths[episodes]
-    starts = (rng.random((2, n_pairs)) * (np.maximum(lengths - segment_length, 0) + 1)).astype(np.int64)
-    steps = starts[..., None] + np.arange(segment_length)
-    mask = steps < lengths[..., None]
-    steps = np.minimum(steps, buffer.max_length - 1)
-    rows = episodes[..., None]
-    observations = {key: value[rows, steps] for key, value in buffer.observations.items()}
-    next_achieved_goals = buffer.next_achieved_goals[rows, steps]
-
-    pair_index = np.arange(n_pairs)
-    share_goal = rng.random(n_pairs) < hindsight_goal_prob
-    source = rng.integers(2, size=n_pairs)
-    step = (rng.random(n_pairs) * mask[source, pair_index].sum(axis=-1)).astype(np.int64)
-    hindsight_goals = next_achieved_goals[source, pair_index, step]
-    observations["desired_goal"][:, share_goal] = hindsight_goals[None, share_goal, None, :]
-
-    actions = buffer.actions[rows, steps]
-    return TrajectoryPairs(
-        observations=observations,
-        actions=actions,
-        reached_actions=actions,
-        next_achieved_goals=next_achieved_goals,
-        mask=mask,
-        labels=np.full(n_pairs, np.nan, dtype=np.float32),
-    )
 
 
 class _TrajectorySink:
@@ -137,7 +78,7 @@ class _TrajectorySink:
         self.buffer.add(obs, action, next_obs["achieved_goal"], done)
 
 
-class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
+class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
     """DPO-FLAT (the DIPPER paper's flat baseline): a squashed-Gaussian policy trained only by token-level DPO.
 
     Collection follows SB3's off-policy loop (``num_timesteps`` counts primitive steps, ``rollout/success_rate`` and
@@ -279,13 +220,14 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
         ).to(self.device)
-        # A model loaded without an env only predicts: its episode store stays tiny until it gets an env to learn on.
-        self.trajectory_buffer = self._make_trajectory_buffer(
-            self.trajectory_buffer_size if self.env is not None else PREDICT_ONLY_BUFFER_SIZE
+        # A model loaded without an env only predicts: its episode store stays tiny until it gets an env to learn on,
+        # and its labeller comes with the first learn (or load_replay_buffer).
+        self.preference_pipeline = PreferencePipeline(
+            self._make_trajectory_buffer(self.trajectory_buffer_size if self.env is not None else PREDICT_ONLY_BUFFER_SIZE),
+            self.n_preference_pairs,
+            SegmentPairSampler(self.segment_length, self.hindsight_goal_prob),
         )
-        self.preferences = PreferenceDataset(self.n_preference_pairs)
         self._reference_log_prob = uniform_log_prob(int(np.prod(self.action_space.shape)))  # type: ignore[arg-type]
-        self._labeler: PreferenceSource | None = None
 
     def _ensure_full_trajectory_buffer(self) -> None:
         """A model loaded without an env gets its full-size episode store once it is to learn or load episodes."""
@@ -325,14 +267,13 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         if reset_num_timesteps or self._last_obs is None:
             # The env is about to be reset: an episode a callback interrupted must not run on into the new one.
             self.trajectory_buffer.discard_open()
-        if self._labeler is None:
-            self._labeler = self._new_labeler()
+        if self.preference_pipeline.labeler is None:
+            self.preference_pipeline.labeler = self._new_labeler()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def _new_labeler(self) -> PreferenceSource:
         assert self.env is not None
-        script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env))
-        return preference_source_from(self.preference_source, script, self.env, None, self.seed, self.n_preference_pairs)
+        return preference_labeler(self.preference_source, self.env, None, self.seed, label_budget=self.n_preference_pairs)
 
     # ---------------------------------------------------------------------------------------------------- acting
 
@@ -365,7 +306,7 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
 
     def train(self, gradient_steps: int, batch_size: int) -> None:
         """New labels, then ``gradient_steps`` DPO steps on ``batch_size`` pairs each."""
-        self._label_new_pairs()
+        self.preference_pipeline.label_new_pairs(self.num_timesteps, self._total_timesteps, self._rng)
         if len(self.preferences) == 0:
             return
         self.policy.set_training_mode(True)
@@ -402,20 +343,6 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         for key, values in logs.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
-    def _label_new_pairs(self) -> None:
-        """Label new pairs so the dataset grows in step with training, up to the label budget."""
-        assert self._labeler is not None
-        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
-        add_new_labels(self.preferences, self._labeler, None)
-        n_new = pairs_due(
-            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
-        )
-        if n_new == 0 or len(self.trajectory_buffer) == 0:
-            return
-        pairs = sample_segment_pairs(self.trajectory_buffer, n_new, self.segment_length, self.hindsight_goal_prob, self._rng)
-        pairs.labels = self._labeler.label(pairs)
-        add_new_labels(self.preferences, self._labeler, pairs)
-
     def _pair_tensors(self, pairs: TrajectoryPairs) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, th.Tensor]:
         """Every step of both segments as one batch: (normalised) observations and actions, plus the mask and labels."""
         flat_obs = flat_pair_observations(pairs)
@@ -429,9 +356,6 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
 
     # ---------------------------------------------------------------------------------------------------- saving
 
-    def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "trajectory_buffer", "preferences", "_labeler"]
-
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.actor.optimizer"], []
 
@@ -441,7 +365,7 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         The file is written under a temporary name and renamed into place. Streams are refused (a ``TypeError``).
         """
         path = replay_buffer_path(path, "DPOFlat.save_replay_buffer", reading=False)
-        save_preference_data(sibling_path(str(path), ".npz"), self.trajectory_buffer, self.preferences)
+        self.preference_pipeline.save(sibling_path(str(path), ".npz"))
 
     def load_replay_buffer(self, path: Any, truncate_last_traj: bool = True) -> None:
         """Load what :meth:`save_replay_buffer` wrote, to resume training where it stopped.
@@ -450,13 +374,9 @@ class DPOFlat(CheckedLoading, OffPolicyAlgorithm):
         """
         path = replay_buffer_path(path, "DPOFlat.load_replay_buffer", reading=True)
         self._ensure_full_trajectory_buffer()
-        self.preferences = load_preference_data(
-            sibling_path(str(path), ".npz"), self.trajectory_buffer, self.n_preference_pairs, self.segment_length
-        )
-        if self._labeler is None and self.env is not None:
-            self._labeler = self._new_labeler()
-        if self._labeler is not None:
-            self._labeler.dataset_restored(self.preferences.handed_ids)
+        if self.preference_pipeline.labeler is None and self.env is not None:
+            self.preference_pipeline.labeler = self._new_labeler()
+        self.preference_pipeline.load(sibling_path(str(path), ".npz"))
 
 
 def episode_length(env: VecEnv) -> int:

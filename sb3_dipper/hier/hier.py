@@ -8,10 +8,9 @@ preferences avoid.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium import spaces
@@ -19,13 +18,13 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.vec_env import VecEnv
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.files import read_replay_buffer, save_replay_buffer_file
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, has_finished_episode, sibling_path
 from sb3_dipper.common.low_level import LevelLogger, sac_torch_save_params
-from sb3_dipper.common.option_env import DictObs
+from sb3_dipper.common.option_env import DictObs, LevelVecEnv
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import as_float, as_int
 from sb3_dipper.hier.policies import MlpPolicy, MultiInputPolicy
@@ -33,7 +32,7 @@ from sb3_dipper.hier.policies import MlpPolicy, MultiInputPolicy
 SelfHIER = TypeVar("SelfHIER", bound="HIER")
 
 
-class OptionGoalVecEnv(VecEnv):
+class OptionGoalVecEnv(LevelVecEnv):
     """The higher level's goal env as SB3 sees it: base observations, unit actions, the base ``compute_reward``.
 
     Never stepped (the option layer drives the envs); ``compute_reward`` is forwarded to the base env, which HER needs.
@@ -45,31 +44,8 @@ class OptionGoalVecEnv(VecEnv):
     """
 
     def __init__(self, observation_space: spaces.Dict, action_space: spaces.Box, base_env: VecEnv | None, num_envs: int):
-        # VecEnv.__init__ asks the envs for their render_mode and warns when there is none; this facade renders nothing.
-        self.render_mode = None
-        super().__init__(num_envs, observation_space, action_space)
+        super().__init__(observation_space, action_space, num_envs, level="higher")
         self.base_env = base_env
-
-    def _not_stepped(self) -> RuntimeError:
-        return RuntimeError("The higher level's env is driven by the option layer; it cannot be reset or stepped directly.")
-
-    def reset(self) -> VecEnvObs:
-        raise self._not_stepped()
-
-    def step_async(self, actions: np.ndarray) -> None:
-        raise self._not_stepped()
-
-    def step_wait(self) -> VecEnvStepReturn:
-        raise self._not_stepped()
-
-    def close(self) -> None:
-        pass
-
-    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
-        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
-
-    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
-        setattr(self, attr_name, value)
 
     def env_method(
         self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
@@ -77,12 +53,6 @@ class OptionGoalVecEnv(VecEnv):
         if self.base_env is None:
             raise RuntimeError("This model was loaded without an env: pass env=... to load() to train it.")
         return self.base_env.env_method(method_name, *method_args, indices=indices, **method_kwargs)
-
-    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
-        return [False for _ in self._get_indices(indices)]
-
-    def seed(self, seed: int | None = None) -> Sequence[int | None]:
-        return [None for _ in range(self.num_envs)]
 
 
 class HIER(HierarchicalAlgorithm):

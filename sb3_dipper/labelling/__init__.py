@@ -9,6 +9,7 @@ from sb3_dipper.labelling.sources import (
     ProgressTieBreaker,
     QueuedPreferenceSource,
     label_queue_directory,
+    preference_labeler,
     preference_source_from,
 )
 
@@ -18,5 +19,6 @@ __all__ = [
     "ProgressTieBreaker",
     "QueuedPreferenceSource",
     "label_queue_directory",
+    "preference_labeler",
     "preference_source_from",
 ]

@@ -21,8 +21,16 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_dipper.common.preferences import MAX_NEW_PAIRS_PER_ROUND, PreferenceSource, TrajectoryPairs, progress_labels
+from sb3_dipper.common.preferences import (
+    MAX_NEW_PAIRS_PER_ROUND,
+    GoalReachedFn,
+    PreferenceSource,
+    PrimitiveInTheLoopLabeler,
+    TrajectoryPairs,
+    progress_labels,
+)
 from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.validation import sparse_goal_reached_fn
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 
 PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
@@ -359,6 +367,30 @@ def preference_source_from(
             if label_budget is not None:
                 warn_if_beyond_people(spec, label_budget)
     return spec
+
+
+def preference_labeler(
+    spec: PreferenceSourceSpec,
+    env: VecEnv,
+    subgoal_space: SubgoalSpace | None,
+    seed: int | None,
+    value_score: Callable[[TrajectoryPairs], np.ndarray] | None = None,
+    goal_reached: GoalReachedFn | None = None,
+    label_budget: int | None = None,
+) -> PreferenceSource:
+    """The labeller of an algorithm (DIPPER, PIPER, DPO-FLAT): its ``preference_source`` on ``env``, with the
+    primitive-in-the-loop labeller of the env's sparse reward as the script (:func:`preference_source_from`).
+
+    :param spec: the algorithm's ``preference_source``, :data:`SPEC_HELP`
+    :param env: the model's env
+    :param subgoal_space: the model's subgoal space (``None``: pairs of primitive actions), recorded for the page
+    :param seed: the model's seed, for sources described without one
+    :param value_score: a term added to the primitive-in-the-loop score (the lower value), ``(2, B)`` per pair
+    :param goal_reached: the env's sparse goal test, if the algorithm has it already (default: read from the env)
+    :param label_budget: the algorithm's ``n_preference_pairs`` (:func:`warn_if_beyond_people`)
+    """
+    script = PrimitiveInTheLoopLabeler(goal_reached or sparse_goal_reached_fn(env), value_score)
+    return preference_source_from(spec, script, env, subgoal_space, seed, label_budget)
 
 
 def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:

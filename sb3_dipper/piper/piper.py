@@ -47,23 +47,12 @@ from sb3_dipper.common.hierarchical import sibling_path
 from sb3_dipper.common.losses import preference_accuracy, preference_loss, tie_share
 from sb3_dipper.common.low_level import sac_state_value
 from sb3_dipper.common.option_env import DictObs, low_level_observation
-from sb3_dipper.common.preferences import (
-    PreferenceDataset,
-    PreferenceSource,
-    PrimitiveInTheLoopLabeler,
-    TrajectoryPairs,
-    add_new_labels,
-    flat_pair_observations,
-    pairs_due,
-    read_preference_data,
-    sample_trajectory_pairs,
-    save_preference_data,
-)
+from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
+from sb3_dipper.common.preferences import TrajectoryPairs, TrajectoryPairSampler, flat_pair_observations
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import as_float, as_int, sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_float, as_int
 from sb3_dipper.hier.hier import HIER
-from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_source_from
+from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 from sb3_dipper.piper.policies import RewardModel
 
 SelfPIPER = TypeVar("SelfPIPER", bound="PIPER")
@@ -147,7 +136,7 @@ class RewardModelSAC(SAC):
         super().train(gradient_steps, batch_size)
 
 
-class PIPER(HIER):
+class PIPER(PreferenceLearner, HIER):
     """PIPER (Singh et al., ICML 2024): HIER whose higher SAC's reward is a reward model learned from PiL preferences.
 
     The higher SAC (:class:`RewardModelSAC`) trains on ``r_phi(s, g, u)`` in place of the env reward; ``r_phi``
@@ -354,21 +343,23 @@ class PIPER(HIER):
             **self.reward_model_kwargs,
         ).to(self.device)
         self.higher.reward_model = self.reward_model
-        self.trajectory_buffer = TrajectoryBuffer(
-            self.trajectory_buffer_size,
-            self.high_steps,
-            self.observation_space,  # type: ignore[arg-type]
-            self.subgoal_space.dim,
-            self.n_envs,
-        )
-        self.preferences = PreferenceDataset(self.n_preference_pairs)
-        self._labeler: PreferenceSource | None = None
+        labeler = None  # a model without an env labels nothing until it gets one
         if self.env is not None:
             value_score = self._pair_value_score if self.value_reg_coef != 0.0 else None
-            script = PrimitiveInTheLoopLabeler(sparse_goal_reached_fn(self.env), value_score)
-            self._labeler = preference_source_from(
-                self.preference_source, script, self.env, self.subgoal_space, self.seed, self.n_preference_pairs
+            labeler = preference_labeler(
+                self.preference_source,
+                self.env,
+                self.subgoal_space,
+                self.seed,
+                value_score,
+                label_budget=self.n_preference_pairs,
             )
+        self.preference_pipeline = PreferencePipeline(
+            self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
+            self.n_preference_pairs,
+            TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space),
+            labeler,
+        )
 
     def learn(
         self: SelfPIPER,
@@ -403,27 +394,13 @@ class PIPER(HIER):
 
     def train(self) -> None:
         """New labels, reward-model updates on them, then HIER's: the lower SAC and the higher SAC on ``r_phi``."""
-        self._label_new_pairs()
+        self.preference_pipeline.label_new_pairs(self.num_timesteps, self._total_timesteps, self._rng)
         if len(self.preferences) == 0:
             # Without labels r_phi is an untrained network: its rewards would only teach the higher SAC noise.
             self._train_low_level()
             return
         self._train_reward_model()
         super().train()
-
-    def _label_new_pairs(self) -> None:
-        """Label new pairs so the dataset grows in step with training, up to the label budget (as DIPPER does)."""
-        assert self.subgoal_space is not None and self._labeler is not None
-        # Labels that arrived since the last round (people), then new pairs; pairs still waiting count as asked.
-        add_new_labels(self.preferences, self._labeler, None)
-        n_new = pairs_due(
-            self.preferences, self.n_preference_pairs, self.num_timesteps, self._total_timesteps, self._labeler.pending
-        )
-        if n_new == 0 or len(self.trajectory_buffer) < 2:
-            return
-        pairs = sample_trajectory_pairs(self.trajectory_buffer, n_new, self.hindsight_goal_prob, self.subgoal_space, self._rng)
-        pairs.labels = self._labeler.label(pairs)
-        add_new_labels(self.preferences, self._labeler, pairs)
 
     def _train_reward_model(self) -> None:
         """Fit ``r_phi`` to the labelled pairs by the Bradley-Terry loss over the trajectories' summed rewards."""
@@ -473,9 +450,6 @@ class PIPER(HIER):
 
     # ---------------------------------------------------------------------------------------------------- saving
 
-    def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "trajectory_buffer", "preferences", "_labeler"]
-
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "reward_model", "reward_model.optimizer"], variables
@@ -483,20 +457,15 @@ class PIPER(HIER):
     def _save_high_level_data(self, path: str) -> None:
         """HIER's higher replay buffer, plus the trajectories and labelled pairs as npz (DIPPER's schema, no pickle)."""
         super()._save_high_level_data(path)
-        save_preference_data(sibling_path(path, ".high.npz"), self.trajectory_buffer, self.preferences)
+        self.preference_pipeline.save(sibling_path(path, ".high.npz"))
 
     def _load_high_level_data(self, path: str, truncate_last_traj: bool) -> Callable[[], None]:
         install_higher_buffer = super()._load_high_level_data(path, truncate_last_traj)
-        trajectories, preferences = read_preference_data(
-            sibling_path(path, ".high.npz"), self.trajectory_buffer, self.n_preference_pairs
-        )
+        install_preference_data = self.preference_pipeline.read(sibling_path(path, ".high.npz"))
 
         def install() -> None:
             install_higher_buffer()
-            self.trajectory_buffer.load_state_dict(trajectories)
-            self.preferences = preferences
-            if self._labeler is not None:
-                self._labeler.dataset_restored(self.preferences.handed_ids)
+            install_preference_data()
 
         return install
 
