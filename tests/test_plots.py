@@ -186,6 +186,12 @@ def test_hierarchical_metrics_from_a_benchmark_csv(tmp_path):
     distance_axis, value_axis = figure.axes[:2]
     assert [line.get_label() for line in distance_axis.get_lines()] == ["DIPPER"]
     np.testing.assert_allclose(value_axis.get_lines()[0].get_ydata()[[0, -1]], [-35.0, -25.0])
+    # Rows from several CSVs, with legend names of their own.
+    other = tmp_path / "other.csv"
+    other.write_text("env,algo,seed,timesteps,success,subgoal_distance,low_value\nE-v0,dipper-own,0,1000,1.0,0.1,-5.0\n")
+    both = plot.benchmark_csv_curves(csv, other)
+    figure = plot.draw_hierarchical_metrics(both, ["dipper", "dipper-own"], ["E-v0"], lambda name: f"{name}!")
+    assert [line.get_label() for line in figure.axes[0].get_lines()] == ["dipper!", "dipper-own!"]
 
 
 def test_training_success_reads_every_part_of_a_paused_run_in_step_order(tmp_path):

@@ -301,10 +301,10 @@ def plot_hierarchical_metrics(log_folders: Sequence[Path], algos: list[str], env
     return draw_hierarchical_metrics(curves, algos, envs)
 
 
-def benchmark_csv_curves(csv: Path) -> Callable[[str, str, str], list[Curve]]:
-    """The per-seed curves of a ``benchmark.py`` CSV (env, algo, seed, timesteps, success, subgoal_distance, low_value),
-    the committed record of a benchmark, keyed like progress.csv (``rollout/subgoal_distance``, ...)."""
-    table = pd.read_csv(csv)
+def benchmark_csv_curves(*csvs: Path) -> Callable[[str, str, str], list[Curve]]:
+    """The per-seed curves of ``benchmark.py`` CSVs (env, algo, seed, timesteps, success, subgoal_distance, low_value),
+    the committed records of benchmarks, keyed like progress.csv (``rollout/subgoal_distance``, ...)."""
+    table = pd.concat([pd.read_csv(csv) for csv in csvs], ignore_index=True)
 
     def curves(env_id: str, algo: str, key: str) -> list[Curve]:
         column = key.removeprefix("rollout/")
@@ -315,9 +315,15 @@ def benchmark_csv_curves(csv: Path) -> Callable[[str, str, str], list[Curve]]:
 
 
 def draw_hierarchical_metrics(
-    curves: Callable[[str, str, str], list[Curve]], algos: list[str], envs: list[str]
+    curves: Callable[[str, str, str], list[Curve]],
+    algos: list[str],
+    envs: list[str],
+    labels: Callable[[str], str] = label,
 ) -> Figure | None:
-    """The hierarchical-metrics figure from ``curves(env_id, algo, key)``, the per-seed curves of one metric."""
+    """The hierarchical-metrics figure from ``curves(env_id, algo, key)``, the per-seed curves of one metric.
+
+    :param labels: the legend name of an algorithm (or ``<algo>-<variant>`` row label)
+    """
     colors = _colors(algos)
     n_rows = len(HIERARCHICAL_METRICS)
     fig, axes = plt.subplots(n_rows, len(envs), figsize=(4.2 * len(envs), 3.4 * n_rows), squeeze=False, sharey="row")
@@ -330,7 +336,7 @@ def draw_hierarchical_metrics(
                     continue
                 steps, mean, std = aggregate(seeds)
                 ax = axes[row, col]
-                _plot_series(ax, steps, mean, color=colors[algo], label=label(algo))
+                _plot_series(ax, steps, mean, color=colors[algo], label=labels(algo))
                 ax.fill_between(steps, mean - std, mean + std, color=colors[algo], alpha=0.2)
                 plotted = True
         for row, name in enumerate(HIERARCHICAL_METRICS.values()):
@@ -413,14 +419,31 @@ def main() -> None:
     parser.add_argument("--iqm", action="store_true", help="also plot the IQM of the final success (rliable)")
     parser.add_argument("--reps", default=2000, type=int, help="bootstrap samples of the IQM confidence intervals")
     parser.add_argument(
-        "--benchmark-csv", type=Path, help="draw only the hierarchical metrics, from a benchmark.py CSV instead of run folders"
+        "--benchmark-csv",
+        type=Path,
+        nargs="+",
+        help="draw only the hierarchical metrics, from benchmark.py CSVs instead of run folders",
+    )
+    parser.add_argument(
+        "--legend",
+        nargs="+",
+        default=[],
+        metavar="NAME=TEXT",
+        help="legend text of an --algos name (e.g. dipper-pnh-goal0.2='DIPPER, policy alone'); default: its algorithm",
     )
     args = parser.parse_args()
+    legend = dict(item.partition("=")[::2] for item in args.legend)
+    unknown = sorted(set(legend) - set(args.algos))
+    if unknown or any("=" not in item for item in args.legend):
+        parser.error(f"--legend takes NAME=TEXT with NAME one of --algos, got {args.legend}")
 
     if args.benchmark_csv is not None:
-        figure = draw_hierarchical_metrics(benchmark_csv_curves(args.benchmark_csv), args.algos, args.envs)
+        figure = draw_hierarchical_metrics(
+            benchmark_csv_curves(*args.benchmark_csv), args.algos, args.envs, lambda name: legend.get(name) or label(name)
+        )
         if figure is None:
-            parser.exit(1, f"error: {args.benchmark_csv} has no subgoal distance or lower value for these runs\n")
+            csvs = ", ".join(map(str, args.benchmark_csv))
+            parser.exit(1, f"error: {csvs} have no subgoal distance or lower value for these runs\n")
         for path in save(figure, args.out / "hierarchical_metrics", args.formats):
             print(path)
         return
