@@ -480,6 +480,32 @@ def test_an_averaged_reference_starts_every_pair_at_a_tie():
         tiny_model(DIPPER, short_maze(), reference="averaged")
 
 
+def test_a_log_std_floor_bounds_the_log_density_of_stored_subgoals(tmp_path):
+    """log p(u) of the squashed Gaussian at the floor, by hand: the actor's own log-std (-10) is raised to -1."""
+    densities = {}
+    for floor in (-20.0, -1.0):
+        model = tiny_model(DIPPER, short_maze(), policy_kwargs=dict(net_arch=[16], log_std_min=floor))
+        actor = model.policy.actor
+        with th.no_grad():
+            for head, bias in ((actor.mu, 0.0), (actor.log_std, -10.0)):
+                head.weight.zero_()
+                head.bias.fill_(bias)
+        observation, _ = model.policy.obs_to_tensor(short_maze().reset())
+        action = th.full((1, 2), math.tanh(0.5))
+        densities[floor] = model.policy.log_prob(observation, action).item()
+        std = math.exp(max(floor, -10.0))
+        by_hand = 2 * (
+            -0.5 * (0.5 / std) ** 2 - math.log(std) - 0.5 * math.log(2 * math.pi) - math.log(1 - math.tanh(0.5) ** 2)
+        )
+        assert densities[floor] == pytest.approx(by_hand, rel=1e-4)
+    assert densities[-20.0] < -1e7 < densities[-1.0]
+    # It is saved with the model and checked.
+    model.save(tmp_path / "floored.zip")
+    assert DIPPER.load(tmp_path / "floored.zip").policy.actor.log_std_min == -1.0
+    with pytest.raises(ValueError, match=r"log_std_min must be a number in \[-20, 2\)"):
+        tiny_model(DIPPER, short_maze(), policy_kwargs=dict(net_arch=[16], log_std_min=2.0))
+
+
 @pytest.mark.parametrize("normalize", [False, True])
 def test_goal_subgoals_execute_the_envs_goal_in_training_only(normalize):
     env = short_maze(n_envs=2)

@@ -1,13 +1,14 @@
 """DIPPER's higher-level policy: a squashed-Gaussian actor over subgoals in ``[-1, 1]^d``, no critic.
 
-It is SB3's SAC ``Actor`` (same parameterisation: MLP trunk, mean and log-std heads, log-std clipped to [-20, 2],
-``tanh`` squashing), trained only by the DIPPER loss. :meth:`DIPPERPolicy.log_prob` gives the log-density of stored
-actions, which the preference loss needs and SB3's actor does not offer.
+It is SB3's SAC ``Actor`` (same parameterisation: MLP trunk, mean and log-std heads, log-std clipped to [-20, 2] or
+from below at ``log_std_min``, ``tanh`` squashing), trained only by the DIPPER loss. :meth:`DIPPERPolicy.log_prob`
+gives the log-density of stored actions, which the preference loss needs and SB3's actor does not offer.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from typing import Any
 
 import torch as th
@@ -16,10 +17,29 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, CombinedExtractor, FlattenExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.common.utils import polyak_update
-from stable_baselines3.sac.policies import Actor
+from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN, Actor
 from torch import nn
 
 from sb3_dipper.common.losses import squashed_gaussian_log_prob
+
+
+class FlooredStdActor(Actor):
+    """SB3's SAC ``Actor`` whose log-std is clipped from below at ``log_std_min`` (SB3 clips at -20).
+
+    A preference loss can widen a pair's margin by narrowing the policy instead of moving its mean: near SB3's floor
+    a stored action off the mean has a log-density of order -1e15, and the loss is decided by the variance. A higher
+    floor bounds every log-density ratio, so only where the mean lies can separate the trajectories.
+
+    :param log_std_min: the lowest log-std (the default, SB3's, changes nothing)
+    """
+
+    def __init__(self, *args: Any, log_std_min: float = LOG_STD_MIN, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.log_std_min = log_std_min
+
+    def get_action_dist_params(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
+        mean_actions, log_std, kwargs = super().get_action_dist_params(obs)
+        return mean_actions, log_std.clamp(min=self.log_std_min), kwargs
 
 
 class DIPPERPolicy(BasePolicy):
@@ -43,10 +63,12 @@ class DIPPERPolicy(BasePolicy):
     :param optimizer_class: optimizer class
     :param optimizer_kwargs: optimizer keyword arguments
     :param acting_tau: when below 1, the policy acts with a Polyak average of the trained actor (``tau`` per update)
+    :param log_std_min: the lowest log-std of the actor (pre-``tanh``; SB3's is -20): a floor keeps the preference loss
+        from separating trajectories by shrinking the variance (see :class:`FlooredStdActor`)
     """
 
-    actor: Actor
-    averaged_actor: Actor | None
+    actor: FlooredStdActor
+    averaged_actor: FlooredStdActor | None
 
     def __init__(
         self,
@@ -62,6 +84,7 @@ class DIPPERPolicy(BasePolicy):
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
         acting_tau: float = 1.0,
+        log_std_min: float = LOG_STD_MIN,
     ):
         if features_extractor_class is None:
             features_extractor_class = CombinedExtractor if isinstance(observation_space, spaces.Dict) else FlattenExtractor
@@ -77,15 +100,20 @@ class DIPPERPolicy(BasePolicy):
         )
         if not 0.0 < acting_tau <= 1.0:
             raise ValueError(f"acting_tau must be in (0, 1], got {acting_tau}")
+        if not (math.isfinite(log_std_min) and LOG_STD_MIN <= log_std_min < LOG_STD_MAX):
+            raise ValueError(
+                f"log_std_min must be a number in [{LOG_STD_MIN}, {LOG_STD_MAX}) (SB3's log-std bounds), got {log_std_min}"
+            )
         self.net_arch = [256, 256] if net_arch is None else net_arch
         self.activation_fn = activation_fn
         self.log_std_init = log_std_init
         self.acting_tau = acting_tau
+        self.log_std_min = float(log_std_min)
         self._build(lr_schedule)
 
     def _build(self, lr_schedule: Schedule) -> None:
         features_extractor = self.make_features_extractor()
-        self.actor = Actor(
+        self.actor = FlooredStdActor(
             self.observation_space,
             self.action_space,  # type: ignore[arg-type]
             net_arch=self.net_arch,
@@ -93,6 +121,7 @@ class DIPPERPolicy(BasePolicy):
             features_dim=features_extractor.features_dim,
             activation_fn=self.activation_fn,
             normalize_images=self.normalize_images,
+            log_std_min=self.log_std_min,
         )
         self.actor.optimizer = self.optimizer_class(
             self.actor.parameters(),
@@ -114,6 +143,7 @@ class DIPPERPolicy(BasePolicy):
                 optimizer_class=self.optimizer_class,
                 optimizer_kwargs=self.optimizer_kwargs,
                 acting_tau=self.acting_tau,
+                log_std_min=self.log_std_min,
                 lr_schedule=self._dummy_schedule,
             )
         )
