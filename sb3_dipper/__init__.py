@@ -9,6 +9,7 @@ from sb3_dipper.hier import HIER
 from sb3_dipper.piper import PIPER
 from sb3_dipper.raps import RAPS
 from sb3_dipper.saga import SAGA
+from sb3_dipper.sac_demo import SACDemo
 from sb3_dipper.envs import register_envs
 
 register_envs()
@@ -16,4 +17,16 @@ register_envs()
 with open(os.path.join(os.path.dirname(__file__), "version.txt")) as file_handler:
     __version__ = file_handler.read().strip()
 
-__all__ = ["DAC", "DIPPER", "HAC", "HIER", "PIPER", "RAPS", "SAGA", "DPOFlat", "SubgoalSpace", "register_subgoal_space"]
+__all__ = [
+    "DAC",
+    "DIPPER",
+    "HAC",
+    "HIER",
+    "PIPER",
+    "RAPS",
+    "SAGA",
+    "DPOFlat",
+    "SACDemo",
+    "SubgoalSpace",
+    "register_subgoal_space",
+]

@@ -70,6 +70,7 @@ from sb3_dipper.labelling.sources import label_queue_directory
 from sb3_dipper.piper import PIPER
 from sb3_dipper.raps import RAPS
 from sb3_dipper.saga import SAGA
+from sb3_dipper.sac_demo import SACDemo
 
 # Zoo names: the same class can appear under several names so that comparison plots show each as its own line.
 ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
@@ -83,6 +84,7 @@ ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
     "raps": RAPS,
     "dac": DAC,
     "dpo_flat": DPOFlat,
+    "sac_demo": SACDemo,
 }
 
 STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv

@@ -10,7 +10,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import sb3_dipper
 from stable_baselines3 import HerReplayBuffer
 
-from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat
+from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat, SACDemo
 
 # One thread: tests run tiny networks, where more threads only add overhead and timing noise.
 th.set_num_threads(1)
@@ -53,13 +53,14 @@ def tiny_model(model_class, env, policy="MultiInputPolicy", **overrides):
     return model_class(policy, env, **kwargs)
 
 
-# Every algorithm of the package. RAPS has no learned lower level and DAC, DPOFlat are flat, so their tiny models are
-# built here rather than through `tiny_model`.
-ALL_ALGORITHMS = [*HIERARCHICAL_ALGORITHMS, RAPS, DAC, DPOFlat]
+# Every algorithm of the package. RAPS has no learned lower level and DAC, DPOFlat, SACDemo are flat, so their tiny
+# models are built here rather than through `tiny_model`. SACDemo's clones the task's single demonstration.
+ALL_ALGORITHMS = [*HIERARCHICAL_ALGORITHMS, RAPS, DAC, DPOFlat, SACDemo]
 OTHER_TINY_MODELS = {
     RAPS: dict(option_steps=5, high_batch_size=16, high_buffer_size=1000),
     DAC: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, discriminator_net_arch=[16]),
     DPOFlat: dict(segment_length=5, n_preference_pairs=200, pairs_per_batch=8, trajectory_buffer_size=50),
+    SACDemo: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, demo_path="auto"),
 }
 
 

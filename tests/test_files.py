@@ -12,7 +12,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common import save_util
 
-from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat
+from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat, SACDemo
 from sb3_dipper.common.demonstrations import load_demonstrations
 from sb3_dipper.common.preferences import (
     PairShapes,
@@ -200,7 +200,7 @@ def test_a_single_file_checkpoint_round_trips_through_a_stream(model_class, kwar
     np.testing.assert_array_equal(resumed.replay_buffer.actions, model.replay_buffer.actions)
 
 
-@pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, RAPS, DAC, DPOFlat])
+@pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, RAPS, DAC, DPOFlat, SACDemo])
 def test_a_model_file_with_nan_weights_is_refused_at_load_naming_the_tensor(model_class, tmp_path):
     """Saved after its training diverged, a model failed only at its first prediction, inside torch's Normal."""
     model = any_tiny_model(model_class, short_maze())
@@ -244,7 +244,7 @@ def other_env_demos(maze_demos, path, part):
     return path
 
 
-@pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, DAC])
+@pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, DAC, SACDemo])
 @pytest.mark.parametrize("part", ["observation", "actions"])
 def test_demonstrations_of_another_env_are_refused_at_construction(model_class, part, maze_demos, tmp_path):
     path = other_env_demos(maze_demos, tmp_path / "push.npz", part)
@@ -252,7 +252,7 @@ def test_demonstrations_of_another_env_are_refused_at_construction(model_class, 
         any_tiny_model(model_class, short_maze(), demo_path=str(path))
 
 
-@pytest.mark.parametrize("model_class", [HIER, DAC])
+@pytest.mark.parametrize("model_class", [HIER, DAC, SACDemo])
 @pytest.mark.parametrize("n_demos", [0, 3])
 def test_n_demos_must_be_between_one_and_the_episodes_in_the_file(model_class, n_demos, maze_demos):
     message = (

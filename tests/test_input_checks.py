@@ -19,7 +19,7 @@ from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_dipper import DAC, DIPPER, HIER, PIPER, RAPS
+from sb3_dipper import DAC, DIPPER, HIER, PIPER, RAPS, SACDemo
 from sb3_dipper.common.option_env import OptionVecEnv
 from sb3_dipper.common.preferences import TrajectoryPairs
 from sb3_dipper.envs import PointMazeReachController
@@ -32,7 +32,11 @@ NON_NEGATIVE = "must be a finite number >= 0"
 DISCOUNT = r"must be a finite number in \(0, 1\]"
 PROBABILITY = r"must be a finite number in \[0, 1\]"
 
-NOT_DAC = [model for model in ALL_ALGORITHMS if model is not DAC and "gamma" in inspect.signature(model).parameters]
+# DAC and SACDemo are flat SB3 SACs, where gamma = 0 (a bandit) is meaningful: [0, 1] there.
+FLAT_SACS = [DAC, SACDemo]
+NOT_FLAT_SACS = [
+    model for model in ALL_ALGORITHMS if model not in FLAT_SACS and "gamma" in inspect.signature(model).parameters
+]
 
 # (parameter, bad value, what the message says after the parameter's name, the classes if not all that have it)
 BAD_SETTINGS = [
@@ -49,13 +53,12 @@ BAD_SETTINGS = [
     ("train_freq", 0, "must be at least 1", None),
     ("option_steps", 2.5, r"must be a whole number \(an integer >= 1\)", None),
     ("max_episode_steps", 0, "must be at least 1", None),
-    # DAC is a flat SB3 SAC, where gamma = 0 (a bandit) is meaningful: [0, 1] there.
-    ("gamma", 0.0, DISCOUNT, NOT_DAC),
-    ("gamma", 1.5, DISCOUNT, NOT_DAC),
-    ("gamma", NAN, DISCOUNT, NOT_DAC),
-    ("gamma", -0.1, PROBABILITY, [DAC]),
-    ("gamma", 1.5, PROBABILITY, [DAC]),
-    ("gamma", NAN, PROBABILITY, [DAC]),
+    ("gamma", 0.0, DISCOUNT, NOT_FLAT_SACS),
+    ("gamma", 1.5, DISCOUNT, NOT_FLAT_SACS),
+    ("gamma", NAN, DISCOUNT, NOT_FLAT_SACS),
+    ("gamma", -0.1, PROBABILITY, FLAT_SACS),
+    ("gamma", 1.5, PROBABILITY, FLAT_SACS),
+    ("gamma", NAN, PROBABILITY, FLAT_SACS),
     ("high_gamma", 1.5, DISCOUNT, None),
     ("tau", 0.0, DISCOUNT, None),
     ("high_tau", 2.0, DISCOUNT, None),
@@ -85,6 +88,8 @@ BAD_SETTINGS = [
     ("demo_share", 1.5, PROBABILITY, None),
     ("bc_coef", -1.0, NON_NEGATIVE, None),
     ("rl_coef", -1.0, NON_NEGATIVE, None),
+    ("n_steps", 0, "must be at least 1", None),
+    ("q_filter", "yes", "must be True or False", [SACDemo]),
 ]
 
 # Every integer-valued constructor setting; the zoo and YAML may hand any of them over as a float or a string.

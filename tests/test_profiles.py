@@ -78,6 +78,10 @@ MEASURED_DEMONSTRATIONS = {
     ("dipper", KITCHEN): "auto:dart20",
     ("dipper", "FetchPickAndPlace-v4"): "auto:dart20",
     ("dipper", "FetchPush-v4"): "auto:dart200",
+    # SAC+HER with cloning clones what DIPPER clones.
+    ("sac_demo", KITCHEN): "auto:dart20",
+    ("sac_demo", "FetchPickAndPlace-v4"): "auto:dart20",
+    ("sac_demo", "FetchPush-v4"): "auto:dart200",
 }
 
 
@@ -110,7 +114,7 @@ def test_the_random_push_profile_clones_two_hundred_dart_episodes(tmp_path, monk
     env.close()
 
 
-@pytest.mark.parametrize("algo", ["dipper", "dipper_paper", "dipper_nov", "hier", "piper", "sac", "dac"])
+@pytest.mark.parametrize("algo", ["dipper", "dipper_paper", "dipper_nov", "hier", "piper", "sac", "dac", "sac_demo"])
 def test_paper_scale_entries_build(algo):
     model, env, n_timesteps = make_model(
         algo, "FetchPickAndPlaceFixed-v0", seed=0, hyperparams=PAPER_DIR, overrides=dict(buffer_size=1000)
@@ -119,6 +123,8 @@ def test_paper_scale_entries_build(algo):
     assert model.batch_size == 1024
     if isinstance(model, HierarchicalAlgorithm):
         assert model.lower.bc_coef == AUTHORS_BC_COEF["FetchPickAndPlaceFixed-v0"]
+    if algo == "sac_demo":
+        assert model.bc_coef == AUTHORS_BC_COEF["FetchPickAndPlaceFixed-v0"] and model.demonstrations is not None
     env.close()
 
 
@@ -133,7 +139,7 @@ AUTHORS_BC_COEF = {
 }
 
 
-@pytest.mark.parametrize("algo", ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "piper", "saga"])
+@pytest.mark.parametrize("algo", ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "piper", "saga", "sac_demo"])
 def test_paper_scale_files_weigh_behaviour_cloning_as_the_authors(algo):
     algorithm = ZOO_ALGORITHMS[algo]
     default = inspect.signature(algorithm).parameters["bc_coef"].default
@@ -141,6 +147,29 @@ def test_paper_scale_files_weigh_behaviour_cloning_as_the_authors(algo):
         entry = load_entry(algo, env_id, PAPER_DIR)
         assert entry["demo_path"] == "auto", (algo, env_id)
         assert entry.get("bc_coef", default) == bc_coef, (algo, env_id)
+
+
+CLONING_SETTINGS = ("demo_path", "n_demos", "demo_share", "bc_coef", "rl_coef", "q_filter")
+
+
+def cloning_settings(algo: str, env_id: str, directory: Path) -> dict:
+    """The demonstration and cloning settings an entry builds its model with, the constructor's defaults included."""
+    entry = load_entry(algo, env_id, directory)
+    parameters = inspect.signature(ZOO_ALGORITHMS[algo]).parameters
+    return {key: entry.get(key, parameters[key].default) for key in CLONING_SETTINGS}
+
+
+def test_sac_demo_entries_are_sac_with_dippers_demonstrations_and_cloning():
+    """The flat row with cloning differs from SAC+HER only by the cloning, and clones what DIPPER clones."""
+    for directory in (hyperparams_dir(), PAPER_DIR):
+        for env_id in ["PointMazeFourRooms-v0", *PAPER_TASKS, "default"]:
+            entry = load_entry("sac_demo", env_id, directory)
+            without_cloning = {key: value for key, value in entry.items() if key not in CLONING_SETTINGS}
+            assert without_cloning == load_entry("sac", env_id, directory), (directory, env_id)
+            assert cloning_settings("sac_demo", env_id, directory) == cloning_settings("dipper", env_id, directory), (
+                directory,
+                env_id,
+            )
 
 
 # Tasks where a run showed the switches beyond the paper help (BENCHMARKS.md, "the paper's tasks on a CPU").

@@ -19,7 +19,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_dipper import DAC, DIPPER, HIER, RAPS
+from sb3_dipper import DAC, DIPPER, HIER, RAPS, SACDemo
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.hierarchical_policy import HierarchicalPolicy
 from sb3_dipper.common.loading import _pickled_class_name
@@ -29,9 +29,9 @@ from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_mod
 from tests.test_save_load import rollout_actions
 
 # Algorithms with an option layer (RAPS's lower level is scripted) and algorithms that size buffers by episodes (DAC
-# stores transitions only).
+# and SACDemo store transitions only).
 OPTION_ALGORITHMS = [model_class for model_class in ALL_ALGORITHMS if issubclass(model_class, HierarchicalAlgorithm)]
-EPISODE_SIZED_ALGORITHMS = [model_class for model_class in ALL_ALGORITHMS if model_class is not DAC]
+EPISODE_SIZED_ALGORITHMS = [model_class for model_class in ALL_ALGORITHMS if model_class not in (DAC, SACDemo)]
 
 
 def maze_with_time_limit(max_episode_steps: int):
@@ -256,7 +256,9 @@ def test_a_subgoal_space_chosen_by_the_user_is_kept_on_any_env(tmp_path, maze_en
 REFUSED_ENTROPY_COEFFICIENTS = [("auto", 0.05), (0.05, "auto"), (0.05, 0.1)]
 
 
-@pytest.mark.parametrize(("model_class", "name"), [(HIER, "ent_coef"), (HIER, "high_ent_coef"), (DAC, "ent_coef")])
+@pytest.mark.parametrize(
+    ("model_class", "name"), [(HIER, "ent_coef"), (HIER, "high_ent_coef"), (DAC, "ent_coef"), (SACDemo, "ent_coef")]
+)
 @pytest.mark.parametrize(("saved", "given"), REFUSED_ENTROPY_COEFFICIENTS)
 def test_an_entropy_coefficient_load_cannot_restore_is_refused(model_class, name, saved, given, tmp_path, maze_env):
     """The reported case: resuming with -params ent_coef:0.05 failed inside SB3 with "'NoneType' object has no attribute

@@ -67,6 +67,15 @@ TINY_PARAMS = {
     "dac": ["n_envs:1", "learning_starts:50", "batch_size:16", "buffer_size:2000", "policy_kwargs:dict(net_arch=[16])"],
     "dpo_flat": ["n_envs:1", "learning_starts:50", "segment_length:5", "n_preference_pairs:200", "pairs_per_batch:8"],
     "sac": ["n_envs:1", "learning_starts:50", "batch_size:16", "buffer_size:2000", "policy_kwargs:dict(net_arch=[16])"],
+    # The fast maze's entry clones nothing (as DIPPER's): the run clones the task's single demonstration.
+    "sac_demo": [
+        "n_envs:1",
+        "learning_starts:50",
+        "batch_size:16",
+        "buffer_size:2000",
+        "policy_kwargs:dict(net_arch=[16])",
+        "demo_path:'auto'",
+    ],
 }
 
 

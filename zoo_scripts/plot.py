@@ -59,6 +59,7 @@ LABELS = {
     "saga": "SAGA",
     "raps": "RAPS",
     "sac": "SAC+HER",
+    "sac_demo": "SAC+HER+BC",
     "tqc": "TQC+HER",
 }
 HIERARCHICAL_METRICS = {"rollout/subgoal_distance": "distance to the subgoal", "rollout/low_value": "lower value"}

@@ -13,11 +13,15 @@ Both parts train the critic; the actor loss is
 where ``mu`` is the deterministic action and the Q-filter keeps a demo step only where the first critic values the
 demonstrated action above the policy's, ``Q_1(s, a_demo) > Q_1(s, mu(s))`` (Nair et al. 2018; PIPER uses a sum over the
 kept demo steps, ``rl_coef = 1e-3`` and a per-task ``bc_coef``).
+
+The flat :class:`~sb3_dipper.sac_demo.SACDemo` clones in the same way, with the env's own goals in place of subgoals
+(:class:`EnvGoals`), so that a flat row of a comparison has the hierarchies' demonstrations and cloning.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 import torch as th
@@ -29,14 +33,46 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
-from sb3_dipper.common.subgoals import SubgoalSpace
+
+
+class RelabelledGoals(Protocol):
+    """What a :class:`DemonstrationBuffer` needs of the goals it relabels: a
+    :class:`~sb3_dipper.common.subgoals.SubgoalSpace` for a lower level, :class:`EnvGoals` for a flat agent."""
+
+    def project(self, achieved_goal: np.ndarray, /) -> np.ndarray:
+        """The part of an env's achieved goal that the policy's goals are made of."""
+
+    def compute_reward(self, achieved_goal: np.ndarray, desired_goal: np.ndarray, /) -> np.ndarray:
+        """The sparse reward of each row, vectorised over the leading dimensions."""
+
+
+class EnvGoals:
+    """The env's own goals, for a :class:`DemonstrationBuffer` of flat transitions: the whole achieved goal is the goal,
+    rewarded as the env rewards it (as SB3's ``HerReplayBuffer`` relabels a flat agent's replay).
+
+    :param env_reward: the env's vectorised ``compute_reward(achieved_goal, desired_goal, infos)``
+    """
+
+    def __init__(self, env_reward: Callable[[np.ndarray, np.ndarray, list[dict[str, Any]]], np.ndarray]) -> None:
+        self.env_reward = env_reward
+
+    def project(self, achieved_goal: np.ndarray) -> np.ndarray:
+        return achieved_goal
+
+    def compute_reward(self, achieved_goal: np.ndarray, desired_goal: np.ndarray) -> np.ndarray:
+        infos: list[dict[str, Any]] = [{} for _ in range(achieved_goal.shape[0])]
+        return np.asarray(self.env_reward(achieved_goal, desired_goal, infos), dtype=np.float32)
 
 
 class DemonstrationBuffer:
     """Lower-level transitions of demonstrations, sampled with subgoals relabelled from later in their episode.
 
+    A flat agent's demonstrations are the same transitions with the env's own goals (:class:`EnvGoals`): "subgoal"
+    then reads "goal".
+
     :param demonstrations: the episodes
-    :param subgoal_space: projects achieved goals to subgoals and gives the subgoal reward
+    :param subgoal_space: projects achieved goals to subgoals and gives the subgoal reward (a
+        :class:`~sb3_dipper.common.subgoals.SubgoalSpace`, or :class:`EnvGoals` for the env's own goals)
     :param scaled_actions: the demonstrated actions rescaled to the lower policy's [-1, 1] action space
     :param relabel_prob: probability that a sampled step's subgoal is a later achieved subgoal of its episode instead
         of the demonstration's own goal (PIPER's ``future_p``, 0.8)
@@ -45,7 +81,7 @@ class DemonstrationBuffer:
     def __init__(
         self,
         demonstrations: Demonstrations,
-        subgoal_space: SubgoalSpace,
+        subgoal_space: RelabelledGoals,
         scaled_actions: np.ndarray,
         relabel_prob: float = 0.8,
     ):
@@ -217,6 +253,9 @@ class DemoSAC(SAC):
         if self._vec_normalize_env is not None:
             observations = self._vec_normalize_env.normalize_obs(observations)  # type: ignore[assignment]
             next_observations = self._vec_normalize_env.normalize_obs(next_observations)  # type: ignore[assignment]
+            # As SB3's buffers scale the replay rewards (a flat agent's VecNormalize(norm_reward=True); a lower level's
+            # normaliser leaves rewards as they are).
+            rewards = self._vec_normalize_env.normalize_reward(rewards)
 
         def joined(replay_part: dict[str, th.Tensor], demo_part: dict[str, np.ndarray]) -> dict[str, th.Tensor]:
             return {
