@@ -54,45 +54,75 @@ from typing import Any
 import numpy as np
 import optuna
 import pandas as pd
-import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import CSVOutputFormat
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
 from sb3_dipper.common.files import read_npz, write_bytes_atomically
-from sb3_dipper.dac import DAC
-from sb3_dipper.dipper import DIPPER
-from sb3_dipper.dpo_flat import DPOFlat
-from sb3_dipper.hac import HAC
-from sb3_dipper.hier import HIER
 from sb3_dipper.labelling.sources import label_queue_directory
-from sb3_dipper.piper import PIPER
-from sb3_dipper.raps import RAPS
-from sb3_dipper.saga import SAGA
-
-# Zoo names: the same class can appear under several names so that comparison plots show each as its own line.
-ZOO_ALGORITHMS: dict[str, type[BaseAlgorithm]] = {
-    "dipper": DIPPER,
-    "dipper_paper": DIPPER,
-    "dipper_nov": DIPPER,
-    "hier": HIER,
-    "piper": PIPER,
-    "saga": SAGA,
-    "hac": HAC,
-    "raps": RAPS,
-    "dac": DAC,
-    "dpo_flat": DPOFlat,
-}
+from sb3_dipper.zoo.algorithms import ZOO_ALGORITHMS, hyperparams_dir
+from sb3_dipper.zoo.run_config import (
+    CONFIG_FILE,
+    RecordedObject,
+    as_recorded,
+    recorded_hyperparameters,
+)
 
 STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv
 # A paused run's checkpoint: <run folder>/resume/model.zip and the files beside it.
 RESUME_FOLDER = "resume"
 RESUME_MODEL = "model.zip"
-# What rl-zoo3 records in <run folder>/<env>/ when a run starts: its hyperparameters (and its flags in args.yml).
-CONFIG_FILE = "config.yml"
 # The evaluations EvalCallback records in the run folder, rewritten whole at every evaluation.
 EVALUATIONS_FILE = "evaluations.npz"
+
+__all__ = [
+    "COMMANDS",
+    "CONFIG_FILE",
+    "EVALUATIONS_FILE",
+    "RESUME_FOLDER",
+    "RESUME_MODEL",
+    "SAMPLERS",
+    "STEPS_KEY",
+    "ZOO_ALGORITHMS",
+    "CSVProgressCallback",
+    "PauseCheckpointCallback",
+    "RecordedObject",
+    "RunControl",
+    "as_recorded",
+    "asks_for_help",
+    "check_resumed_hyperparameters",
+    "checkpoint_steps",
+    "claim_run_folder",
+    "command_parser",
+    "continue_evaluations",
+    "differing_hyperparameters",
+    "drop_episodes_after",
+    "hyperparams_dir",
+    "keep_params",
+    "keep_params_without_value_term",
+    "learn_resumed",
+    "main",
+    "parse_label_page",
+    "print_train_help",
+    "recorded_evaluations",
+    "recorded_hyperparameters",
+    "register",
+    "remove_resume_checkpoint",
+    "replace_folder",
+    "run_control_parser",
+    "sample_dipper_nov_params",
+    "sample_dipper_params",
+    "sample_dpo_flat_params",
+    "sample_hier_params",
+    "sample_piper_params",
+    "sample_saga_params",
+    "saved_steps",
+    "set_aside_part",
+    "split_run_control",
+    "start_label_page",
+    "zoo_argv",
+]
 
 
 class CSVProgressCallback(BaseCallback):
@@ -119,14 +149,6 @@ class CSVProgressCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         return True
-
-
-def hyperparams_dir() -> Path:
-    """Our hyperparameter files: beside the package in a checkout, under ``<prefix>/share/sb3-dipper`` when installed."""
-    checkout = Path(__file__).resolve().parent.parent / "hyperparams"
-    if checkout.is_dir():
-        return checkout
-    return Path(sys.prefix) / "share" / "sb3-dipper" / "hyperparams"
 
 
 def sample_dipper_params(trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
@@ -540,69 +562,6 @@ def checkpoint_steps(run_folder: Path) -> int:
     return saved_steps(run_folder / RESUME_FOLDER / RESUME_MODEL)[0]
 
 
-@dataclass(frozen=True)
-class RecordedObject:
-    """A Python object in a hyperparameter record (``!!python/name:torch.nn.ReLU``), kept as its tag and value."""
-
-    tag: str
-    value: Any
-
-    def __repr__(self) -> str:
-        return f"!!python/{self.tag}{'' if self.value in ('', None) else f' {self.value!r}'}"
-
-
-class _RecordLoader(yaml.SafeLoader):
-    """YAML's safe loader, reading the Python tags that rl-zoo3's ``yaml.dump`` writes into ``config.yml`` without
-    building any object: an ``OrderedDict`` becomes a dict, a tuple a tuple, anything else a :class:`RecordedObject`
-    (enough to compare two records)."""
-
-
-def _recorded_ordered_dict(loader: yaml.SafeLoader, node: yaml.Node) -> dict[Any, Any]:
-    (pairs,) = loader.construct_sequence(node, deep=True)  # type: ignore[arg-type]
-    return {key: value for key, value in pairs}
-
-
-def _recorded_tuple(loader: yaml.SafeLoader, node: yaml.Node) -> tuple[Any, ...]:
-    return tuple(loader.construct_sequence(node, deep=True))  # type: ignore[arg-type]
-
-
-def _recorded_object(loader: yaml.SafeLoader, tag: str, node: yaml.Node) -> RecordedObject:
-    if isinstance(node, yaml.MappingNode):
-        return RecordedObject(tag, loader.construct_mapping(node, deep=True))
-    if isinstance(node, yaml.SequenceNode):
-        return RecordedObject(tag, tuple(loader.construct_sequence(node, deep=True)))
-    return RecordedObject(tag, loader.construct_scalar(node))  # type: ignore[arg-type]
-
-
-_RecordLoader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict", _recorded_ordered_dict)
-_RecordLoader.add_constructor("tag:yaml.org,2002:python/tuple", _recorded_tuple)
-_RecordLoader.add_multi_constructor("tag:yaml.org,2002:python/", _recorded_object)
-
-
-def as_recorded(hyperparameters: Mapping[str, Any]) -> dict[str, Any]:
-    """``hyperparameters`` as rl-zoo3 records them in ``config.yml`` (``yaml.dump``) and :func:`recorded_hyperparameters`
-    reads them back, so that given and recorded ones compare alike."""
-    return yaml.load(yaml.dump(dict(hyperparameters)), Loader=_RecordLoader)
-
-
-def recorded_hyperparameters(config: Path) -> dict[str, Any]:
-    """The hyperparameters rl-zoo3 recorded in a run's ``config.yml``, read without running code."""
-    try:
-        record = yaml.load(config.read_text(), Loader=_RecordLoader)
-    except FileNotFoundError:
-        raise FileNotFoundError(
-            f"{config} is missing: rl-zoo3 writes the hyperparameters a run starts with there, and --resume checks the "
-            "ones given against them. Restore it from a copy of the run folder, or start a new run (without --resume)."
-        ) from None
-    except yaml.YAMLError as error:
-        raise ValueError(
-            f"Malformed hyperparameter record {config}: {error}. Restore it from a copy of the run folder."
-        ) from error
-    if not isinstance(record, dict):
-        raise ValueError(f"Malformed hyperparameter record {config}: expected a mapping of hyperparameters")
-    return record
-
-
 def differing_hyperparameters(started: Mapping[str, Any], given: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
     """``(name, started with, given)`` for every hyperparameter that differs (``None`` for one not set), by name.
 
@@ -632,7 +591,14 @@ def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mappin
     :param given: the hyperparameters of this command, as rl-zoo3 records them
     """
     config = run_folder / env_name / CONFIG_FILE
-    differing = differing_hyperparameters(recorded_hyperparameters(config), as_recorded(given))
+    try:
+        started = recorded_hyperparameters(config)
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            f"{config} is missing: rl-zoo3 writes the hyperparameters a run starts with there, and --resume checks the "
+            "ones given against them. Restore it from a copy of the run folder, or start a new run (without --resume)."
+        ) from None
+    differing = differing_hyperparameters(started, as_recorded(given))
     if not differing:
         return
     lines = "\n".join(
@@ -885,7 +851,3 @@ def main() -> None:
         runpy.run_module(module, run_name="__main__")
     else:
         getattr(importlib.import_module(module), command)()
-
-
-if __name__ == "__main__":
-    main()
