@@ -53,7 +53,7 @@ from sb3_dipper.common.low_level import sac_dead_units
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
 from configs import episode_successes, load_entry, make_env, make_model
-from oracle_subgoals import oracle_subgoals, run_episodes
+from zoo_scripts.research.oracle_subgoals import oracle_subgoals, run_episodes
 
 PICK_AND_PLACE = "FetchPickAndPlaceFixed-v0"
 PUSH = "FetchPushFixed-v0"

@@ -319,7 +319,7 @@ def main() -> None:
         "--save-freq",
         type=int,
         help="also keep the model every this many primitive steps (rl-zoo3's rl_model_<steps>_steps.zip in the run "
-        "folder), e.g. for zoo_scripts/planner_share.py --checkpoints",
+        "folder), e.g. for zoo_scripts/research/planner_share.py --checkpoints",
     )
     learning.add_argument("--out", default="runs/benchmark", help="runs in <out>/<variant>/seed_<n>/, tables, CSV, figure")
     learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")

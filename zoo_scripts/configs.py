@@ -1,4 +1,4 @@
-"""The scripts' shared helpers: the run-configuration loader of the package, and a few helpers of the scripts.
+"""The scripts' shared helpers: the run-configuration loader of the package, and how the scripts evaluate and measure.
 
 The loader (reading ``hyperparams/<algo>.yml`` and a run's ``config.yml``, building models and envs as the zoo does)
 lives in :mod:`sb3_dipper.zoo.run_config`; its names are re-exported here for the scripts and for code that imports
@@ -14,11 +14,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.files import write_bytes_atomically
+from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
+from sb3_dipper.dipper import DIPPER
 from sb3_dipper.zoo.run_config import (
     ALGORITHMS,
     EVALUATED_KEYS,
@@ -41,6 +44,7 @@ __all__ = [
     "ZOO_KEYS",
     "checkpoints",
     "episode_successes",
+    "evaluate",
     "load_entry",
     "make_env",
     "make_model",
@@ -104,6 +108,41 @@ def episode_successes(model: BaseAlgorithm, env: VecEnv, n_episodes: int, determ
 
     evaluate_policy(model, env, n_eval_episodes=n_episodes, deterministic=deterministic, callback=record)
     return successes[:n_episodes]
+
+
+def evaluate(
+    model: HierarchicalAlgorithm,
+    env: VecEnv,
+    n_episodes: int,
+    goal_as_subgoal: bool = False,
+    sample_higher: bool = False,
+    sample_lower: bool = False,
+) -> dict[str, float]:
+    """Success over ``n_episodes`` and the share of higher-level decisions the planner made; both levels act
+    deterministically unless told to sample.
+
+    :param goal_as_subgoal: replace the higher level by the env's goal as every subgoal (the lower level alone)
+    :param sample_higher: the higher level samples its policy, as while collecting
+    :param sample_lower: the lower level samples its policy, as while collecting
+    """
+    decisions = {"planned": 0, "all": 0}
+    decide = model._high_level_actions
+
+    def counted(observation, deterministic):  # type: ignore[no-untyped-def]  # the case decides, not predict's flag
+        if goal_as_subgoal:
+            return model._subgoal_actions(observation["desired_goal"])
+        actions = decide(observation, not sample_higher)
+        planned = model.last_planned if isinstance(model, DIPPER) else np.zeros(len(actions), dtype=bool)
+        decisions["planned"] += int(planned.sum())
+        decisions["all"] += int(planned.size)
+        return actions
+
+    model._high_level_actions = counted  # type: ignore[method-assign]
+    try:
+        success = float(np.mean(episode_successes(model, env, n_episodes, deterministic=not sample_lower)))
+    finally:
+        del model._high_level_actions
+    return {"success": success, "planned_share": decisions["planned"] / max(decisions["all"], 1)}
 
 
 def torch_threads() -> int:
