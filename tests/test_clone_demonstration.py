@@ -1,4 +1,4 @@
-"""zoo_scripts/clone_demonstration.py: what a task's one demonstration teaches by pure behaviour cloning."""
+"""zoo_scripts/research/clone_demonstration.py: what a task's one demonstration teaches by pure behaviour cloning."""
 
 import csv
 
@@ -8,7 +8,7 @@ import pytest
 
 from sb3_dipper.envs.demos import default_demonstrations, expert_demonstrations
 from sb3_dipper.common.imitation import DemonstrationBuffer
-from zoo_scripts.clone_demonstration import (
+from zoo_scripts.research.clone_demonstration import (
     first_departure,
     fit_clone,
     goal_conditioned_batches,
@@ -17,7 +17,7 @@ from zoo_scripts.clone_demonstration import (
     run_clone,
     subgoal_conditioned_batches,
 )
-from zoo_scripts.oracle_subgoals import oracle_subgoals
+from zoo_scripts.research.oracle_subgoals import oracle_subgoals
 
 
 def test_the_departure_is_the_first_step_off_the_demonstrated_states():

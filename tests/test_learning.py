@@ -7,14 +7,10 @@ the greedy controller reaches 2 % and the paper's DIPPER, HIER and flat SAC+HER 
 deterministic on CPU, so a failure means the learning changed, not bad luck.
 """
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
-from configs import episode_successes, load_entry, make_env, make_model
+from zoo_scripts.configs import episode_successes, load_entry, make_env, make_model
 
 ENV_ID = "PointMazeFourRooms-v0"
 

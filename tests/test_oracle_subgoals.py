@@ -1,4 +1,5 @@
-"""zoo_scripts/oracle_subgoals.py: a trained model driven by the demonstration's subgoals, beside its own higher level."""
+"""zoo_scripts/research/oracle_subgoals.py: a trained model driven by the demonstration's subgoals, beside its own higher
+level."""
 
 import csv
 import json
@@ -16,9 +17,9 @@ from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OB
 from sb3_dipper.envs.demos import default_demonstrations
 from tests.conftest import tiny_model
 from zoo_scripts.configs import trained_run
-from zoo_scripts.oracle_subgoals import oracle_subgoals, run_episodes
+from zoo_scripts.research.oracle_subgoals import oracle_subgoals, run_episodes
 
-SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "oracle_subgoals.py"
+SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "research" / "oracle_subgoals.py"
 
 ENV_ID = "FetchPickAndPlaceFixed-v0"
 

@@ -39,8 +39,6 @@ On the kitchen the profile's lower level clones twenty DART episodes (section 25
 episodes per evaluation, 8 minutes on a shared core) opened it to 0.63, 0.00 and 0.62 at 30k, 45k and 60k.
 """
 
-import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,10 +48,8 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_dipper.common.low_level import sac_dead_units
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
-from configs import episode_successes, load_entry, make_env, make_model
-from oracle_subgoals import oracle_subgoals, run_episodes
+from zoo_scripts.configs import episode_successes, load_entry, make_env, make_model
+from zoo_scripts.research.oracle_subgoals import oracle_subgoals, run_episodes
 
 PICK_AND_PLACE = "FetchPickAndPlaceFixed-v0"
 PUSH = "FetchPushFixed-v0"

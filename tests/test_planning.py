@@ -1,5 +1,5 @@
 """Planning over achieved states: the voxel graph, shortest paths that stitch trajectories, waypoints, and who proposes
-DIPPER's subgoals with the subgoal planner (the planner's share, zoo_scripts/planner_share.py), and DIPPER's planning
+DIPPER's subgoals with the subgoal planner (the planner's share, zoo_scripts/research/planner_share.py), and DIPPER's planning
 parameters before ``planner_kwargs``."""
 
 import json
@@ -28,7 +28,7 @@ from sb3_dipper.common.trajectories import TrajectoryBuffer
 from tests.conftest import SHORT_EPISODES, any_tiny_model, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from tests.test_save_load import rollout_actions
-from zoo_scripts import planner_share
+from zoo_scripts.research import planner_share
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -203,7 +203,7 @@ def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_
     model.save(run / "rl_model_1000_steps.zip")
     model.num_timesteps = 800
     model.save(run / "rl_model_800_steps.zip")
-    command = [sys.executable, str(REPO / "zoo_scripts" / "planner_share.py"), str(run), "--episodes", "1"]
+    command = [sys.executable, str(REPO / "zoo_scripts" / "research" / "planner_share.py"), str(run), "--episodes", "1"]
     command += ["--csv", str(tmp_path / "share.csv")]
     done = subprocess.run([*command, "--checkpoints"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]

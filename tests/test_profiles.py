@@ -1,7 +1,6 @@
 """The two sets of hyperparameters: CPU profiles in hyperparams/<algo>.yml, paper scale in hyperparams/paper/<algo>.yml."""
 
 import inspect
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,9 +13,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.zoo import ZOO_ALGORITHMS, hyperparams_dir
 from tests.test_zoo import PAPER_TASKS
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
-from configs import load_entry, make_model
+from zoo_scripts.configs import load_entry, make_model
 
 PAPER_DIR = hyperparams_dir() / "paper"
 ALGOS = sorted(path.stem for path in hyperparams_dir().glob("*.yml"))

@@ -20,7 +20,7 @@ from sb3_dipper.common.low_level import clipped_soft_target, sac_value_gap, step
 from sb3_dipper.common.preferences import flat_pair_observations
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import short_maze, tiny_model
-from zoo_scripts import benchmark
+from zoo_scripts.benchmarking import profile as benchmark
 
 TOLERANCE = 1e-5
 

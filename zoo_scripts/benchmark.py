@@ -81,700 +81,147 @@ Protocols preset algorithms, tasks, seeds and budgets; flags given explicitly ov
 from __future__ import annotations
 
 import argparse
-import ast
-import csv
-import datetime
-import inspect
-import json
 import os
-import platform
-import random
-import shlex
 import shutil
-import statistics
-import subprocess
 import sys
-import time
-from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import ThreadPoolExecutor, as_completed
-from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
-from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import numpy as np
-import torch as th
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plot
+from benchmarking.profile import (
+    FUSED_ADAM,
+    THROUGHPUT_LOWER,
+    env_steps_per_second,
+    fused_adam_overrides,
+    interleaved_seconds,
+    profile_variants,
+    repeat_call,
+    run_profiles,
+    run_throughput,
+    run_updates,
+    throughput_models,
+    training_chunks,
+    update_steps,
+    variant_overrides,
+)
+from benchmarking.report import (
+    BENCHMARKS_MD,
+    CSV_COLUMNS,
+    CSV_METRICS,
+    OPTION_METRICS,
+    PREFERENCE_PAIRS,
+    PREFERENCE_PAIRS_KEY,
+    REPO,
+    RESULTS_DIR,
+    TRAINING_SUCCESS,
+    Curves,
+    SeedCurve,
+    command_line,
+    final_mean,
+    load_curves,
+    machine,
+    read_report_csv,
+    report,
+    run_seed_curve,
+    task_table,
+    write_section,
+)
+from benchmarking.run import (
+    CPU_TASKS,
+    DEFAULT_VARIANT,
+    LEARNING_DEFAULTS,
+    PAPER_ALGORITHMS,
+    PAPER_TASKS,
+    PARTS,
+    POINT_MAZE,
+    PROTOCOLS,
+    RESULT,
+    add_part_seconds,
+    finished,
+    learning_run,
+    local_results,
+    model_steps,
+    ray_results,
+    resolve_protocol,
+    resumable,
+    run_name,
+    seed_folder,
+    trained_to_the_end,
+    zoo_flags,
+    zoo_pairs,
+)
 from configs import ALGORITHMS, ZOO_KEYS, load_entry, make_env, make_model, torch_threads
 from plot import LABELS, label
 
-from sb3_dipper.common.files import write_bytes_atomically
-from sb3_dipper.zoo import RESUME_FOLDER, RESUME_MODEL, saved_steps
-
-REPO = Path(__file__).resolve().parent.parent
-BENCHMARKS_MD = REPO / "BENCHMARKS.md"
-RESULTS_DIR = REPO / "docs" / "benchmarks"
-POINT_MAZE = "PointMazeFourRooms-v0"
-PAPER_TASKS = ["FetchFourRoomMaze-v0", "FetchPickAndPlace-v4", "FetchPush-v4", "FrankaKitchenMicrowaveBurner-v0"]
-# The paper's tasks with the authors' fixed variants first: the CPU profiles of hyperparams/<algo>.yml, one core per run.
-CPU_TASKS = [
-    "FetchPickAndPlaceFixed-v0",
-    "FetchPushFixed-v0",
-    "FrankaKitchenMicrowaveBurner-v0",
-    "FetchPickAndPlace-v4",
-    "FetchPush-v4",
-    "FetchFourRoomMazeFixed-v0",
-    "FetchFourRoomMaze-v0",
+# The parts of the benchmarks live in benchmarking/; their names stay importable from this script's module.
+__all__ = [
+    "ALGORITHMS",
+    "BENCHMARKS_MD",
+    "CPU_TASKS",
+    "CSV_COLUMNS",
+    "CSV_METRICS",
+    "DEFAULT_VARIANT",
+    "FUSED_ADAM",
+    "LABELS",
+    "LEARNING_DEFAULTS",
+    "OPTION_METRICS",
+    "PAPER_ALGORITHMS",
+    "PAPER_TASKS",
+    "PARTS",
+    "POINT_MAZE",
+    "PREFERENCE_PAIRS",
+    "PREFERENCE_PAIRS_KEY",
+    "PROTOCOLS",
+    "REPO",
+    "RESULT",
+    "RESULTS_DIR",
+    "THROUGHPUT_LOWER",
+    "TRAINING_SUCCESS",
+    "ZOO_KEYS",
+    "Curves",
+    "SeedCurve",
+    "add_part_seconds",
+    "command_line",
+    "env_steps_per_second",
+    "final_mean",
+    "finished",
+    "fused_adam_overrides",
+    "interleaved_seconds",
+    "label",
+    "learning_run",
+    "load_curves",
+    "load_entry",
+    "local_results",
+    "machine",
+    "make_env",
+    "make_model",
+    "model_steps",
+    "profile_variants",
+    "ray_results",
+    "read_report_csv",
+    "repeat_call",
+    "report",
+    "resolve_protocol",
+    "resumable",
+    "run_name",
+    "run_profiles",
+    "run_seed_curve",
+    "run_throughput",
+    "run_updates",
+    "seed_folder",
+    "task_table",
+    "throughput_models",
+    "torch_threads",
+    "trained_to_the_end",
+    "training_chunks",
+    "update_steps",
+    "variant_overrides",
+    "write_section",
+    "zoo_flags",
+    "zoo_pairs",
 ]
-# The paper's comparison (its DIPPER, DIPPER-No-V and baselines, SAC+HER as FLAT) plus this package's DIPPER.
-PAPER_ALGORITHMS = ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "raps", "piper", "saga", "dac", "dpo_flat", "sac"]
-LEARNING_DEFAULTS: dict[str, Any] = dict(
-    envs=[POINT_MAZE], algos=["dipper", "hier", "sac"], seeds=[0, 1, 2], n_timesteps=None, eval_freq=20_000, eval_episodes=50
-)
-PROTOCOLS: dict[str, dict[str, Any]] = {
-    "quick": dict(
-        envs=[POINT_MAZE],
-        algos=PAPER_ALGORITHMS,
-        seeds=[0, 1, 2],
-        n_timesteps=40_000,
-        eval_freq=8_000,
-        eval_episodes=20,
-    ),
-    "paper": dict(envs=PAPER_TASKS, algos=PAPER_ALGORITHMS, seeds=[0, 1, 2, 3, 4], n_timesteps=None, eval_freq=25_000),
-    "cpu": dict(
-        envs=CPU_TASKS,
-        algos=["dipper", "dipper_paper", "dipper_nov", "hier", "piper", "dac", "sac"],
-        seeds=[0, 1, 2],
-        n_timesteps=None,
-        eval_freq=15_000,
-        eval_episodes=20,
-    ),
-}
-# Logged by the option layer of hierarchical algorithms (``rollout/<key>`` in progress.csv); read at each evaluation.
-OPTION_METRICS = ("subgoal_distance", "low_value")
-# The labelled pairs in the preference dataset (DIPPER, PIPER: ``train/high_preference_pairs``): what a person would
-# have labelled to get the result, had a person given the labels.
-PREFERENCE_PAIRS = "preference_pairs"
-PREFERENCE_PAIRS_KEY = "train/high_preference_pairs"
-# The training episodes' success over the last 100 episodes, from the monitor files: the authors' "train success rate".
-TRAINING_SUCCESS = "train_success"
-CSV_METRICS = (*OPTION_METRICS, TRAINING_SUCCESS, PREFERENCE_PAIRS)
-# The report's CSV: a row per run and evaluation; ``finished`` is 1 once the run had trained its whole budget.
-CSV_COLUMNS = ("env", "algo", "seed", "timesteps", "success", *CSV_METRICS, "finished")
-
-
-# ------------------------------------------------------------------------------------------------------------- report
-
-
-def machine() -> str:
-    return f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}, torch {th.__version__}, no GPU"
-
-
-def command_line(script: str, arguments: list[str]) -> str:
-    """The shell command that runs ``zoo_scripts/<script>`` with ``arguments``, each quoted where a shell would split or
-    read it (``--set "value_reg='score'"``), so a stamped command reruns as it ran."""
-    return shlex.join(["python", f"zoo_scripts/{script}", *arguments])
-
-
-def write_section(name: str, body: str, command: str, path: Path = BENCHMARKS_MD) -> None:
-    """Replace (or append) the ``name`` section of ``path`` (BENCHMARKS.md), stamped with command, machine and date."""
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    stamp = f"Command: `{command}`  \nMachine: {machine()}  \nDate: {datetime.date.today().isoformat()}\n\n"
-    section = f"{start}\n{stamp}{body.strip()}\n{end}"
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    if start in text and end in text:
-        text = text[: text.index(start)] + section + text[text.index(end) + len(end) :]
-    else:
-        text = f"{text.rstrip()}\n\n{section}\n"
-    write_bytes_atomically(path, text.encode())
-
-
-# ------------------------------------------------------------------------------------------------------------- throughput
-
-THROUGHPUT_LOWER = dict(batch_size=256, buffer_size=100_000, learning_starts=1000, gamma=0.95, tau=0.005)
-
-
-def throughput_models(env_id: str, net_arch: list[int]) -> dict[str, Any]:
-    """SAC+HER and the hierarchical algorithms with the same lower networks, batch size and updates per step."""
-    models = {}
-    for algo in ("sac", "hier", "dipper", "dipper_paper"):
-        overrides: dict[str, Any] = dict(THROUGHPUT_LOWER, n_envs=1)
-        if algo == "sac":
-            overrides.update(policy_kwargs=dict(net_arch=net_arch), train_freq=1, gradient_steps=1)
-        else:
-            overrides.update(low_policy_kwargs=dict(net_arch=net_arch), train_freq=1, gradient_steps=1)
-        models[algo] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
-    return models
-
-
-def interleaved_seconds(chunks: Mapping[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
-    """Seconds of each of ``repeats`` calls of every chunk of work, the chunks in a new random order every round, so
-    that every one meets the machine's changing load alike."""
-    seconds: dict[str, list[float]] = {name: [] for name in chunks}
-    order = list(chunks)
-    for _ in range(repeats):
-        random.shuffle(order)
-        for name in order:
-            start = time.perf_counter()
-            chunks[name]()
-            seconds[name].append(time.perf_counter() - start)
-    return seconds
-
-
-def training_chunks(models: dict[str, Any], steps: int) -> dict[str, Callable[[], Any]]:
-    """``steps`` more training steps of each model, as chunks for :func:`interleaved_seconds`."""
-    return {name: partial(model.learn, steps, reset_num_timesteps=False) for name, model in models.items()}
-
-
-def run_throughput(args: argparse.Namespace) -> None:
-    th.set_num_threads(torch_threads())
-    models = throughput_models(args.env, args.net_arch)
-    for model in models.values():
-        model.learn(THROUGHPUT_LOWER["learning_starts"] + args.steps)
-    seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
-    seconds = {algo: [chunk / args.steps for chunk in chunks] for algo, chunks in seconds.items()}
-    per_step = {algo: statistics.median(values) for algo, values in seconds.items()}
-    write_bytes_atomically(
-        RESULTS_DIR / "throughput.json", json.dumps({"seconds_per_step": seconds, "median": per_step}, indent=1).encode()
-    )
-    rows = [f"| {LABELS[algo]} | {per_step[algo] * 1e3:.2f} | {per_step[algo] / per_step['sac']:.2f} |" for algo in models]
-    body = (
-        f"Seconds per primitive step on `{args.env}`, one env, lower networks {args.net_arch}, batch 256, one lower "
-        f"gradient step per primitive step for every algorithm (SAC+HER: its only level). Median of {args.repeats} "
-        f"interleaved chunks of {args.steps} steps after warm-up, measured in one process.\n\n"
-        "| algorithm | ms per step | ratio to SAC+HER |\n|---|---|---|\n" + "\n".join(rows)
-    )
-    write_section("throughput", body, command_line("benchmark.py", sys.argv[1:]))
-    print(body)
-
-
-def env_steps_per_second(env_id: str, n_envs: int, steps: int) -> float:
-    """Primitive steps per second of the task's vectorised env under uniformly random actions (the limit if updates
-    and acting were free)."""
-    env = make_env(env_id, {"n_envs": n_envs}, seed=0)
-    env.reset()
-    start = time.perf_counter()
-    for _ in range(steps // n_envs):
-        env.step(np.stack([env.action_space.sample() for _ in range(n_envs)]))
-    seconds = time.perf_counter() - start
-    env.close()
-    return (steps // n_envs) * n_envs / seconds
-
-
-FUSED_ADAM = "fused"  # the variant name of a profile whose optimizers are fused Adam
-
-
-def fused_adam_overrides(algo: str, env_id: str) -> dict[str, Any]:
-    """The entry's network kwargs of every level with ``optimizer_kwargs={"fused": True}``: ``torch.optim.Adam``'s
-    one-kernel update of all parameters instead of its loop over tensors in Python, the same math (the SAC entropy
-    coefficient's own optimizer, used only with ``ent_coef='auto'``, stays SB3's)."""
-    entry = load_entry(algo, env_id)
-    levels = ["policy_kwargs"]
-    if "low_policy_kwargs" in inspect.signature(ALGORITHMS[algo]).parameters:
-        levels.append("low_policy_kwargs")
-    overrides = {}
-    for key in levels:
-        kwargs = dict(entry.get(key) or {})
-        kwargs["optimizer_kwargs"] = {**kwargs.get("optimizer_kwargs", {}), "fused": True}
-        overrides[key] = kwargs
-    return overrides
-
-
-def profile_variants(variants: list[list[str]]) -> dict[str, dict[str, Any]]:
-    """``--variant NAME KEY=VALUE ...`` of ``profiles`` as ``{NAME: {KEY: value}}``, the values Python literals.
-
-    :param variants: one list per ``--variant``: its name, then its assignments
-    """
-    parsed: dict[str, dict[str, Any]] = {}
-    for name, *assignments in variants:
-        if "=" in name or not assignments:
-            raise ValueError(f"--variant takes a name, then key=value (e.g. --variant b128 batch_size=128), got {name!r}")
-        overrides = {}
-        for assignment in assignments:
-            key, separator, value = assignment.partition("=")
-            if not separator or not key:
-                raise ValueError(f"--variant {name} takes key=value after its name, got {assignment!r}")
-            try:
-                overrides[key] = ast.literal_eval(value)
-            except (ValueError, SyntaxError):
-                raise ValueError(
-                    f"--variant {name} {assignment}: {value!r} is not a Python literal "
-                    "(a number, string in quotes, list or dict: policy_kwargs=\"{'net_arch': [64, 64]}\")"
-                ) from None
-        parsed[name] = overrides
-    return parsed
-
-
-def variant_overrides(algo: str, env_id: str, changes: dict[str, Any]) -> dict[str, Any] | None:
-    """One ``--variant``'s ``changes`` as overrides of an algorithm's entry, or None where the algorithm lacks a keyword.
-
-    A dict value updates the entry's dict (``policy_kwargs={'optimizer_kwargs': {'fused': True}}`` keeps the entry's
-    ``net_arch``), so a variant changes only what it names; a variant of a lower level's keywords
-    (``low_policy_kwargs``, ``bc_coef``) is skipped for SAC+HER, which has none.
-    """
-    keywords = set(inspect.signature(ALGORITHMS[algo]).parameters) | set(ZOO_KEYS)
-    if not set(changes) <= keywords:
-        return None
-    entry = load_entry(algo, env_id)
-    return {
-        key: {**entry[key], **value} if isinstance(value, dict) and isinstance(entry.get(key), dict) else value
-        for key, value in changes.items()
-    }
-
-
-def run_profiles(args: argparse.Namespace) -> None:
-    """Training steps per second of each algorithm at each task's CPU profile, beside the env's own step rate.
-
-    The models of one task are warmed up past ``learning_starts``, then trained in interleaved chunks of
-    ``--steps`` primitive steps (the median chunk counts), in this one process, so the ratios share the machine's state.
-    With ``--fused-adam`` each algorithm is measured a second time, as ``<algo>-fused``, with fused Adam optimizers;
-    each ``--variant NAME KEY=VALUE ...`` measures it once more, as ``<algo>-NAME``, with those hyperparameters changed
-    (:func:`variant_overrides`).
-    """
-    th.set_num_threads(torch_threads())
-    variants = profile_variants(args.variant)
-    rows, records = [], []
-    for env_id in args.envs:
-        models = {algo: make_model(algo, env_id, seed=0)[0] for algo in args.algos}
-        if args.fused_adam:
-            for algo in args.algos:
-                overrides = fused_adam_overrides(algo, env_id)
-                models[f"{algo}-{FUSED_ADAM}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
-        for name, changes in variants.items():
-            for algo in args.algos:
-                variant = variant_overrides(algo, env_id, changes)
-                if variant is not None:
-                    models[f"{algo}-{name}"] = make_model(algo, env_id, seed=0, overrides=variant)[0]
-            if not any(f"{algo}-{name}" in models for algo in args.algos):
-                raise ValueError(f"--variant {name}: none of {', '.join(args.algos)} takes {', '.join(sorted(changes))}")
-        n_envs = models[args.algos[0]].n_envs
-        env_rate = env_steps_per_second(env_id, n_envs, args.steps)
-        for model in models.values():
-            model.learn(int(getattr(model, "learning_starts", 0)) + args.steps)
-        seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
-        rates = {algo: args.steps / statistics.median(values) for algo, values in seconds.items()}
-        baseline = rates.get("sac")
-        for algo, rate in rates.items():
-            versus_sac = f"{rate / baseline:.2f}" if baseline else "-"
-            ratios = f"{rate / env_rate:.2f} | {versus_sac}"
-            rows.append(f"| `{env_id}` | {label(algo)} | {rate:.0f} | {env_rate:.0f} | {ratios} |")
-            records.append(f"{env_id},{algo},{models[algo].n_envs},{rate:.2f},{env_rate:.2f}")
-        print(rows[-len(rates) :], flush=True)
-    csv = RESULTS_DIR / f"{args.name}.csv"
-    body = (
-        "Primitive steps per second while training, at each task's CPU profile (`hyperparams/<algo>.yml`), one torch "
-        f"thread, median of {args.repeats} interleaved chunks of {args.steps:,} steps after `learning_starts`, measured "
-        "in one process; the env rate is the same vectorised env under random actions (the limit if updates were "
-        f"free). CSV: `{os.path.relpath(csv, REPO)}`.\n\n"
-        "| task | algorithm | training steps/s | env steps/s | ratio to env | ratio to SAC+HER |\n|---|---|---|---|---|---|\n"
-        + "\n".join(rows)
-    )
-    if args.write:
-        header = "env,algo,n_envs,train_steps_per_second,env_steps_per_second"
-        write_bytes_atomically(csv, "\n".join([header, *records, ""]).encode())
-        write_section(args.name, body, command_line("benchmark.py", sys.argv[1:]))
-    print(body)
-
-
-# ------------------------------------------------------------------------------------------------------------- updates
-
-
-def update_steps(model: Any) -> dict[str, Any]:
-    """One update of each kind on a trained DIPPER: SB3's own ``SAC.train`` on the lower SAC (same networks, buffer and
-    batch), the lower level's DemoSAC step (behaviour cloning, clipped targets) and DIPPER's higher-level update."""
-    from stable_baselines3 import SAC
-
-    lower, batch_size = model.lower, model.batch_size
-    return {
-        "SB3 SAC.train, 1 gradient step": lambda: SAC.train(lower, 1, batch_size),
-        "DemoSAC.train, 1 gradient step": lambda: lower.train(1, batch_size),
-        "DIPPER higher-level update": model._train_high_level,
-    }
-
-
-def repeat_call(function: Callable[[], Any], times: int) -> None:
-    for _ in range(times):
-        function()
-
-
-def run_updates(args: argparse.Namespace) -> None:
-    """Milliseconds per training update at a task's DIPPER CPU profile, and their ratios to SB3's SAC update.
-
-    The model trains ``learning_starts + --warmup`` primitive steps first (filled buffers, labelled pairs); then each
-    kind of update runs ``--updates`` times per round, the kinds in a new random order every round, all in this one
-    process, so the ratios share the machine's state (the absolute times do not travel).
-    """
-    th.set_num_threads(torch_threads())
-    model = make_model("dipper", args.env, seed=0)[0]
-    model.learn(int(getattr(model, "learning_starts", 0)) + args.warmup)
-    chunks = {name: partial(repeat_call, update, args.updates) for name, update in update_steps(model).items()}
-    seconds = interleaved_seconds(chunks, args.repeats)
-    per_update = {name: statistics.median(values) / args.updates for name, values in seconds.items()}
-    baseline = per_update["SB3 SAC.train, 1 gradient step"]
-    rows = [f"| {name} | {value * 1e3:.2f} | {value / baseline:.2f} |" for name, value in per_update.items()]
-    print(
-        f"Milliseconds per update at `{args.env}`'s DIPPER CPU profile (`hyperparams/dipper.yml`), one torch thread, "
-        f"median of {args.repeats} interleaved rounds of {args.updates} updates after {args.warmup:,} training steps "
-        "past `learning_starts`, measured in one process.\n\n"
-        "| update | ms per update | ratio to SB3 SAC |\n|---|---|---|\n" + "\n".join(rows)
-    )
-
-
-# ------------------------------------------------------------------------------------------------------------- learning
-
-
-DEFAULT_VARIANT = "default"  # the folder of the runs without --variant
-RESULT = "result.json"
-PARTS = "parts.json"  # the training time of a paused run's parts
-
-
-def run_name(algo: str, variant: str | None) -> str:
-    """The name of an algorithm's runs in tables, figure and CSV: ``<algo>`` or ``<algo>-<variant>``."""
-    return algo if variant is None else f"{algo}-{variant}"
-
-
-def seed_folder(out: Path, variant: str | None, seed: int) -> Path:
-    """The zoo log folder (``train -f``) of one seed of a variant: ``<out>/<variant or 'default'>/seed_<seed>``."""
-    return out / (variant or DEFAULT_VARIANT) / f"seed_{seed}"
-
-
-def zoo_pairs(flag: str, assignments: list[str]) -> list[str]:
-    """``key=value`` assignments as rl-zoo3's ``key:value`` (its ``-params`` and ``--env-kwargs``).
-
-    rl-zoo3 evaluates each value as Python. A bare word such as ``value_reg=score`` would be a name it cannot evaluate
-    (in every run, after its start-up), so it is refused here with the quoting that works.
-
-    :param flag: the option the assignments came from, for the error message
-    :param assignments: ``key=value`` strings
-    """
-    pairs = []
-    for assignment in assignments:
-        key, separator, value = assignment.partition("=")
-        try:
-            expression = ast.parse(value, mode="eval").body if separator and key else None
-        except SyntaxError as error:
-            raise ValueError(f"{flag} {assignment}: {value!r} is not a Python expression ({error.msg})") from None
-        if expression is None:
-            raise ValueError(f"{flag} takes key=value (e.g. {flag} learning_starts=1000), got {assignment!r}")
-        if isinstance(expression, ast.Name):
-            raise ValueError(
-                f"{flag} {assignment}: rl-zoo3 reads the value as Python, where {value} is an undefined name; "
-                f"quote a string: {flag} \"{key}='{value}'\""
-            )
-        pairs.append(f"{key}:{value}")
-    return pairs
-
-
-def zoo_flags(args: argparse.Namespace) -> list[str]:
-    """The ``sb3-dipper-zoo train`` flags every run of this command shares (evaluation, budget, overrides)."""
-    n_eval_envs = args.n_eval_envs or min(args.eval_episodes, 10)
-    flags = ["--eval-freq", str(args.eval_freq), "--eval-episodes", str(args.eval_episodes), "--n-eval-envs", str(n_eval_envs)]
-    if args.pause_after_minutes is not None:
-        flags += ["--pause-after-minutes", str(args.pause_after_minutes)]
-    if args.save_freq:
-        flags += ["--save-freq", str(args.save_freq)]
-    if args.n_timesteps:
-        flags += ["-n", str(args.n_timesteps)]
-    if args.env_kwargs:
-        flags += ["--env-kwargs", *zoo_pairs("--env-kwargs", args.env_kwargs)]
-    if args.set:
-        flags += ["-params", *zoo_pairs("--set", args.set)]
-    return flags
-
-
-def finished(run: Path) -> bool:
-    return (run / RESULT).exists()
-
-
-def model_steps(run: Path) -> tuple[int, int] | None:
-    """``num_timesteps`` and ``_total_timesteps`` of the run's final model, or None before it has one."""
-    env_name = run.name.rsplit("_", 1)[0]  # the zoo names the run folder <env>_<n> and the model <env>.zip
-    model = run / f"{env_name}.zip"
-    return saved_steps(model) if model.exists() else None
-
-
-def trained_to_the_end(run: Path) -> bool:
-    """Whether the run's final model trained its whole budget: rl-zoo3 also saves the model of a run stopped by Ctrl-C
-    or paused by ``--pause-after-minutes``."""
-    steps = model_steps(run)
-    return steps is not None and steps[0] >= steps[1]
-
-
-def resumable(run: Path) -> bool:
-    """Whether an unfinished run was paused with a resume checkpoint (``sb3-dipper-zoo train --pause-after-minutes``)."""
-    return not finished(run) and (run / RESUME_FOLDER / RESUME_MODEL).is_file()
-
-
-def add_part_seconds(run: Path, seconds: float) -> float:
-    """Add a part's training time to the run's ``parts.json``; the run's time so far."""
-    total = seconds + (float(json.loads((run / PARTS).read_text())["seconds"]) if (run / PARTS).exists() else 0.0)
-    write_bytes_atomically(run / PARTS, json.dumps({"seconds": total}).encode())
-    return total
-
-
-def learning_run(algo: str, env_id: str, seed: int, out: Path, variant: str | None, flags: list[str]) -> str:
-    """One run: ``sb3-dipper-zoo train`` in a process of its own, then ``result.json`` in its run folder.
-
-    Folders an unfinished attempt left (a crash, a kill) are removed first, so the run folder is ``<env>_1`` again.
-
-    :param flags: the zoo flags of :func:`zoo_flags`
-    :return: a line for the console
-    """
-    log_folder = seed_folder(out, variant, seed)
-    paused = [run for run in plot.zoo_runs(log_folder, algo, env_id) if resumable(run)]
-    for unfinished in plot.zoo_runs(log_folder, algo, env_id):
-        if not finished(unfinished) and unfinished not in paused[-1:]:
-            shutil.rmtree(unfinished)
-    output = log_folder / algo / f"{env_id}.log"
-    output.parent.mkdir(parents=True, exist_ok=True)
-    command = [sys.executable, "-m", "sb3_dipper.zoo", "train", "--algo", algo, "--env", env_id, "--seed", str(seed)]
-    command += ["-f", str(log_folder), "--num-threads", str(torch_threads()), *flags]
-    if paused:
-        command += ["--resume", str(paused[-1])]
-    start = time.time()
-    with open(output, "a" if paused else "w") as log:
-        returncode = subprocess.run(command, stdout=log, stderr=subprocess.STDOUT).returncode
-    seconds = time.time() - start
-    runs = plot.zoo_runs(log_folder, algo, env_id)
-    if returncode == 0 and runs and resumable(runs[-1]) and not trained_to_the_end(runs[-1]):
-        add_part_seconds(runs[-1], seconds)
-        steps = model_steps(runs[-1])
-        done = f"{steps[0]:,} of {steps[1]:,}" if steps else "some"
-        return f"{run_name(algo, variant)} {env_id} seed {seed}: paused after {done} steps; the same command resumes it"
-    if returncode != 0 or not runs or not trained_to_the_end(runs[-1]):
-        tail = "".join(output.read_text().splitlines(keepends=True)[-20:])
-        raise RuntimeError(
-            f"{run_name(algo, variant)} on {env_id}, seed {seed}: sb3-dipper-zoo train exited with {returncode} without "
-            f"training its whole budget; its output is in {output}, ending with:\n{tail}"
-        )
-    seconds = add_part_seconds(runs[-1], seconds)  # a resumed run's time is the sum of its parts
-    result = dict(algo=algo, variant=variant, env=env_id, seed=seed, seconds=seconds)
-    write_bytes_atomically(runs[-1] / RESULT, json.dumps(result).encode())
-    curve = plot.evaluation_curve(runs[-1])
-    success = f", success {curve[1][-1]:.2f} at its last evaluation" if curve is not None else ""
-    return f"{run_name(algo, variant)} {env_id} seed {seed}: {seconds / 60:.1f} min{success}"
-
-
-@dataclass
-class SeedCurve:
-    """Every evaluation of one seed's run."""
-
-    seed: int
-    finished: bool  # the run has ended (result.json); a running or cut-off run is partial
-    steps: np.ndarray  # (evaluations,) primitive steps
-    success: np.ndarray  # (evaluations,) success rates
-    metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (evaluations,), NaN where not logged
-
-
-@dataclass
-class Curves:
-    """The evaluations of one algorithm (or variant) on one task, at the evaluations every seed has reached (the
-    table's mean), and each seed's own (the CSV, the figure's continuation of seeds that went further)."""
-
-    steps: np.ndarray  # (evaluations,) primitive steps
-    success: np.ndarray  # (seeds, evaluations) success rates
-    metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (seeds, evaluations), NaN where not logged
-    per_seed: list[SeedCurve]
-
-    @property
-    def seeds(self) -> list[int]:
-        return [seed_curve.seed for seed_curve in self.per_seed]
-
-    @property
-    def finished(self) -> list[bool]:
-        return [seed_curve.finished for seed_curve in self.per_seed]
-
-
-def run_seed_curve(run: Path, seed: int) -> SeedCurve | None:
-    """The evaluations of one zoo run folder, read with plot.py's loaders, or None before its first evaluation.
-
-    The option metrics at an evaluation are the last values ``progress.csv`` logged at or before its step.
-    """
-    curve = plot.evaluation_curve(run)
-    if curve is None:
-        return None
-    log = plot.load_progress(run)
-    logged: dict[str, plot.Curve | None] = {
-        key: plot.metric_curve(log, f"rollout/{key}") if log is not None else None for key in OPTION_METRICS
-    }
-    logged[TRAINING_SUCCESS] = plot.training_success_curve(run)
-    logged[PREFERENCE_PAIRS] = plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None
-    steps, success = curve
-    metrics = {key: np.array([plot.value_at(logged[key], step) for step in steps]) for key in CSV_METRICS}
-    return SeedCurve(seed=seed, finished=finished(run), steps=steps, success=success, metrics=metrics)
-
-
-def read_report_csv(path: Path) -> dict[tuple[str, str, int], SeedCurve]:
-    """The runs of a CSV that :func:`report` wrote, by ``(env, name, seed)``: runs whose folders are gone (a past
-    session's machine, another machine) still count in a later report (``--previous-csv``).
-
-    :raises ValueError: the file lacks a column :func:`report` writes (names the file and the columns)
-    """
-    with open(path, newline="") as file:
-        reader = csv.DictReader(file)
-        missing = [column for column in CSV_COLUMNS if column not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(
-                f"{path} lacks the columns {missing} of a report CSV ({','.join(CSV_COLUMNS)}): pass a CSV that "
-                "benchmark.py learning wrote"
-            )
-        rows: dict[tuple[str, str, int], list[dict[str, str]]] = {}
-        for row in reader:
-            rows.setdefault((row["env"], row["algo"], int(row["seed"])), []).append(row)
-    return {
-        (env_id, name, seed): SeedCurve(
-            seed=seed,
-            finished=all(row["finished"] == "1" for row in seed_rows),
-            steps=np.array([float(row["timesteps"]) for row in seed_rows]),
-            success=np.array([float(row["success"]) for row in seed_rows]),
-            metrics={key: np.array([float(row[key] or "nan") for row in seed_rows]) for key in CSV_METRICS},
-        )
-        for (env_id, name, seed), seed_rows in rows.items()
-    }
-
-
-def load_curves(
-    out: Path, name: str, env_id: str, seeds: list[int], previous: Mapping[tuple[str, str, int], SeedCurve]
-) -> Curves | None:
-    """The runs of ``name`` (``<algo>[-<variant>]``) on ``env_id`` that have evaluations: a seed with a run folder in
-    ``out`` is read from its last one, any other from ``previous`` (:func:`read_report_csv`)."""
-    algo, _, variant = name.partition("-")
-    per_seed = []
-    for seed in seeds:
-        runs = plot.zoo_runs(seed_folder(out, variant or None, seed), algo, env_id)
-        seed_curve = run_seed_curve(runs[-1], seed) if runs else previous.get((env_id, name, seed))
-        if seed_curve is not None:
-            per_seed.append(seed_curve)
-    if not per_seed:
-        return None
-    steps, success = plot.align([(seed_curve.steps, seed_curve.success) for seed_curve in per_seed])
-    metrics = {
-        key: np.array([[plot.value_at((seed.steps, seed.metrics[key]), step) for step in steps] for seed in per_seed])
-        for key in CSV_METRICS
-    }
-    return Curves(steps=steps, success=success, metrics=metrics, per_seed=per_seed)
-
-
-def final_mean(curves: Curves, key: str, number_format: str = ".2f") -> str:
-    """Mean over seeds of a metric at the last evaluation, or a dash where the algorithm does not log it; the number
-    of seeds when only some of them have it."""
-    final = curves.metrics[key][:, -1]
-    if np.isnan(final).all():
-        return "-"
-    measured = int(np.count_nonzero(~np.isnan(final)))
-    mean = format(np.nanmean(final), number_format)
-    return mean + (f" ({measured} of {len(final)} seeds)" if measured < len(final) else "")
-
-
-def task_table(
-    out: Path, names: list[str], env_id: str, seeds: list[int], previous: Mapping[tuple[str, str, int], SeedCurve]
-) -> tuple[str, dict[str, Curves], list[str]]:
-    """Markdown table of one task (success at the last common evaluation, steps to 50 %, option metrics), its curves
-    and its CSV rows."""
-    curves: dict[str, Curves] = {}
-    rows, csv_rows = [], []
-    for name in names:
-        run_curves = load_curves(out, name, env_id, seeds, previous)
-        if run_curves is None:
-            continue
-        curves[name] = run_curves
-        for seed_curve in run_curves.per_seed:
-            for step_index, step in enumerate(seed_curve.steps):
-                metrics = [seed_curve.metrics[key][step_index] for key in CSV_METRICS]
-                values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
-                success = seed_curve.success[step_index]
-                csv_rows.append(
-                    f"{env_id},{name},{seed_curve.seed},{int(step)},{success:.4f},{values},{int(seed_curve.finished)}"
-                )
-        final = run_curves.success[:, -1]
-        reached = np.flatnonzero(run_curves.success.mean(axis=0) >= 0.5)
-        to_half = f"{int(run_curves.steps[reached[0]]):,}" if reached.size else "not reached"
-        unfinished = run_curves.finished.count(False)
-        runs = f"{len(run_curves.seeds)}" + (f" ({unfinished} partial)" if unfinished else "")
-        rows.append(
-            f"| {label(name)} | {runs} | {int(run_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
-            f"{final_mean(run_curves, TRAINING_SUCCESS)} | {to_half} | {final_mean(run_curves, 'subgoal_distance')} | "
-            f"{final_mean(run_curves, 'low_value')} | {final_mean(run_curves, PREFERENCE_PAIRS, ',.0f')} |"
-        )
-    if not rows:
-        return "No runs yet.", curves, csv_rows
-    table = (
-        "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | training success there (last 100 "
-        "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there | labelled pairs there |\n"
-        "|---|---|---|---|---|---|---|---|---|\n"
-    )
-    return table + "\n".join(rows), curves, csv_rows
-
-
-def report(
-    out: Path,
-    names: list[str],
-    envs: list[str],
-    seeds: list[int],
-    name: str,
-    figures_dir: Path,
-    previous: Mapping[tuple[str, str, int], SeedCurve] | None = None,
-) -> tuple[dict[str, str], dict[str, dict[str, Curves]], Path]:
-    """Tables and curves per task, the CSV ``<out>/<name>.csv`` and the figure ``<figures_dir>/<name>.png``.
-
-    :param names: the runs to report, ``<algo>`` or ``<algo>-<variant>``
-    :param previous: runs without a folder in ``out``, from an earlier report's CSV (:func:`read_report_csv`)
-    """
-    tables, curves, csv_rows = {}, {}, [",".join(CSV_COLUMNS)]
-    for env_id in envs:
-        tables[env_id], curves[env_id], rows = task_table(out, names, env_id, seeds, previous or {})
-        csv_rows += rows
-    write_bytes_atomically(out / f"{name}.csv", ("\n".join(csv_rows) + "\n").encode())
-    panels = {
-        env_id: {run: [(seed.steps, seed.success) for seed in run_curves.per_seed] for run, run_curves in task.items()}
-        for env_id, task in curves.items()
-    }
-    figure = plot.save(plot.draw_success(panels), figures_dir / name, ["png"])[0]
-    return tables, curves, figure
-
-
-def local_results(jobs: list[tuple[Any, ...]], workers: int) -> Iterator[str]:
-    """The runs on this machine, ``workers`` zoo processes at a time; a failed run cancels the runs not yet started."""
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(learning_run, *job) for job in jobs]
-        try:
-            for future in as_completed(futures):
-                yield future.result()
-        finally:
-            for future in futures:
-                future.cancel()
-
-
-def ray_results(jobs: list[tuple[Any, ...]], address: str) -> Iterator[str]:
-    """The runs as Ray tasks of one CPU on the cluster at ``address``; they write into ``--out`` themselves."""
-    import ray
-
-    # Workers unpickle learning_run, which imports configs and plot from this directory: it must be on their path.
-    python_path = [str(Path(__file__).resolve().parent), *filter(None, [os.environ.get("PYTHONPATH")])]
-    env_vars = {"PYTHONPATH": os.pathsep.join(python_path), "MUJOCO_GL": os.environ["MUJOCO_GL"]}
-    if "SB3_DIPPER_THREADS" in os.environ:
-        env_vars["SB3_DIPPER_THREADS"] = os.environ["SB3_DIPPER_THREADS"]
-    ray.init(address=address, runtime_env={"env_vars": env_vars})
-    try:
-        remote_run = ray.remote(num_cpus=1)(learning_run)
-        pending = [remote_run.remote(*job) for job in jobs]
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            yield ray.get(done[0])
-    finally:
-        ray.shutdown()
-
-
-def resolve_protocol(args: argparse.Namespace) -> None:
-    """Fill the options not given on the command line from the protocol's presets, then from the defaults."""
-    for key, value in {**LEARNING_DEFAULTS, **PROTOCOLS.get(args.protocol, {})}.items():
-        if getattr(args, key) is None:
-            setattr(args, key, value)
-    args.name = args.name or args.protocol or "learning"
 
 
 def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, dict[str, Curves]]]:
@@ -872,7 +319,7 @@ def main() -> None:
         "--save-freq",
         type=int,
         help="also keep the model every this many primitive steps (rl-zoo3's rl_model_<steps>_steps.zip in the run "
-        "folder), e.g. for zoo_scripts/planner_share.py --checkpoints",
+        "folder), e.g. for zoo_scripts/research/planner_share.py --checkpoints",
     )
     learning.add_argument("--out", default="runs/benchmark", help="runs in <out>/<variant>/seed_<n>/, tables, CSV, figure")
     learning.add_argument("--name", help="section of BENCHMARKS.md, figure and CSV name (default: protocol or learning)")

@@ -26,8 +26,7 @@ import matplotlib.pyplot as plt
 
 from sb3_dipper.common.files import write_atomically
 
-from configs import load_entry, make_env, make_model, torch_threads
-from planner_share import evaluate
+from configs import evaluate, load_entry, make_env, make_model, torch_threads
 
 ENV_ID = "PointMazeFourRooms-v0"
 

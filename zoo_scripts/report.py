@@ -7,7 +7,7 @@ Each cell is the deterministic success at each seed's last evaluation within the
 the seeds, and the number of seeds in brackets (a ``*`` marks a seed that had not finished its budget). A cell names
 exactly one configuration: the run label of ``docs/benchmarks/paper-tasks-cpu.csv`` (``<algo>`` or
 ``<algo>-<variant>``, see :data:`COLUMNS`) or, for the evaluations of a final model with part of it switched off
-(``zoo_scripts/planner_share.py``), a case of a planner-share CSV. The columns say who acts:
+(``zoo_scripts/research/planner_share.py``), a case of a planner-share CSV. The columns say who acts:
 
 * the ``dipper`` profile as trained (with the subgoal planner where the profile has one, which proposes the subgoal
   wherever its graph knows a path to the goal and leaves every other subgoal to the preference-trained policy);
@@ -87,7 +87,7 @@ DIPPER_PROFILE: dict[str, Source] = {
 
 
 def final_models(case: str) -> dict[str, Source]:
-    """The final models of the ``dipper`` profile's runs evaluated as ``case`` (``zoo_scripts/planner_share.py``)."""
+    """The final models of the ``dipper`` profile's runs evaluated as ``case`` (``zoo_scripts/research/planner_share.py``)."""
     fixed_planner = "planner-share-planner-fixed.csv"
     sources: dict[str, Source] = {
         PNP_FIXED: Evaluated(fixed_planner, "FetchPickAndPlaceFixed", case),
@@ -143,9 +143,10 @@ FLAT_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("DPO-FLAT", everywhere("dpo_flat")),
     ("DAC", everywhere("dac")),
     ("SAC+HER", everywhere("sac")),
+    ("SAC+HER+BC", everywhere("sac_demo")),
 ]
 # Whose success, for the hierarchical baselines: their final models as trained, with the higher policy untrained and
-# with the goal as every subgoal (zoo_scripts/planner_share.py), per task and method: (csv, the runs' path part).
+# with the goal as every subgoal (zoo_scripts/research/planner_share.py), per task and method: (csv, the runs' path part).
 BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "HAC", "planner-share-baselines.csv", "/hac/"),
     (PNP_FIXED, "SAGA", "planner-share-baselines.csv", "/saga/"),

@@ -1,0 +1,156 @@
+"""rl-zoo3's experiment manager as ``sb3-dipper-zoo train`` runs it: each run claims its own folder, and a run pauses,
+resumes (:mod:`sb3_dipper.zoo.resume`) and serves the labelling page while it trains as :class:`RunControl` says.
+
+rl-zoo3 patches gymnasium's ``TimeLimit`` when imported, so :func:`install_experiment_manager` imports it only when
+called.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_dipper.labelling.training_page import start_label_page
+from sb3_dipper.zoo.resume import (
+    RESUME_FOLDER,
+    RESUME_MODEL,
+    PauseCheckpointCallback,
+    check_resumed_hyperparameters,
+    continue_evaluations,
+    learn_resumed,
+    recorded_evaluations,
+    remove_resume_checkpoint,
+    set_aside_part,
+)
+
+
+def claim_run_folder(log_path: str, env_name: str, run_id: int, suffix: str = "") -> str:
+    """Create the run folder ``<log_path>/<env_name>_<run_id><suffix>``, or the first free id after ``run_id``.
+
+    The folder is created exclusively (``mkdir`` fails if it exists), so runs started together with the same log
+    folder each get their own, where rl-zoo3 would hand them all the next free id and mix their files.
+
+    :param log_path: the algorithm's log folder (created if missing)
+    :param env_name: the env id the run folders are named after
+    :param run_id: the first id to try
+    :param suffix: what follows the id (rl-zoo3's ``--uuid``)
+    :return: the path of the created folder
+    """
+    os.makedirs(log_path, exist_ok=True)
+    while True:
+        save_path = os.path.join(log_path, f"{env_name}_{run_id}{suffix}")
+        try:
+            os.mkdir(save_path)
+        except FileExistsError:
+            run_id += 1
+        else:
+            return save_path
+
+
+@dataclass
+class RunControl:
+    """Our own flags of ``sb3-dipper-zoo train``, read before rl-zoo3 parses the rest.
+
+    :param pause_after_minutes: ``--pause-after-minutes M``: after M minutes of training, save a resume checkpoint in
+        the run folder and stop (rl-zoo3 then saves the model as usual)
+    :param resume: ``--resume RUN_FOLDER``: continue that run from its resume checkpoint, in the same folder, to the
+        run's whole budget
+    :param label_page: ``--label-page [HOST:]PORT``: serve the labelling page of the model's label queue (its
+        ``preference_source`` is ``people:DIR`` or ``mixed:DIR:FRACTION``) while it trains, as ``(host, port)``
+    """
+
+    pause_after_minutes: float | None = None
+    resume: Path | None = None
+    label_page: tuple[str, int] | None = None
+
+    def check_resumable(self, env_name: str, hyperparameters: Mapping[str, Any]) -> None:
+        """With ``--resume``, refuse before anything changes a run that cannot continue as it was: other
+        hyperparameters than the run's own (:func:`check_resumed_hyperparameters`), or a damaged evaluation record.
+
+        :param env_name: the env's folder name in the run folder
+        :param hyperparameters: the hyperparameters given, as rl-zoo3 read them
+        """
+        if self.resume is None:
+            return
+        check_resumed_hyperparameters(self.resume, env_name, hyperparameters)
+        recorded_evaluations(self.resume)
+
+
+def install_experiment_manager(control: RunControl | None = None) -> None:
+    """Make rl-zoo3's train create each run's folder with :func:`claim_run_folder` and obey ``control``.
+
+    :param control: ``--pause-after-minutes`` and ``--resume`` (idempotent: the last call's control counts)
+    """
+    import rl_zoo3.train
+    from rl_zoo3.exp_manager import ExperimentManager
+    from rl_zoo3.utils import get_latest_run_id
+
+    run_control = control or RunControl()
+
+    class OwnRunFolderExperimentManager(ExperimentManager):
+        """rl-zoo3's experiment manager whose run folder is claimed exclusively when it is created, and which pauses
+        and resumes runs (:class:`RunControl`)."""
+
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            # rl-zoo3's train passes its --uuid suffix by keyword.
+            self.run_folder_suffix = kwargs.get("uuid_str", "")
+            if run_control.resume is not None:
+                # rl-zoo3's own continuation: it loads the model, the replay buffer beside it and, from
+                # <dir>/<env>/vecnormalize.pkl, the normalisation statistics.
+                self.trained_agent = str(run_control.resume / RESUME_FOLDER / RESUME_MODEL)
+                self.continue_training = True
+
+        def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+            hyperparams, saved_hyperparams = super().read_hyperparameters()
+            # Before anything in the run folder changes (create_log_folder sets the last part's logs aside).
+            run_control.check_resumable(str(self.env_name), saved_hyperparams)
+            return hyperparams, saved_hyperparams
+
+        def create_log_folder(self) -> None:
+            if run_control.resume is not None:
+                self.save_path = str(run_control.resume)
+                self.params_path = f"{self.save_path}/{self.env_name}"
+                set_aside_part(run_control.resume)
+            else:
+                run_id = get_latest_run_id(self.log_path, self.env_name) + 1
+                self.save_path = claim_run_folder(self.log_path, self.env_name, run_id, self.run_folder_suffix)
+                self.params_path = f"{self.save_path}/{self.env_name}"
+            super().create_log_folder()
+
+        def create_callbacks(self) -> None:
+            super().create_callbacks()
+            if run_control.pause_after_minutes is not None:
+                pause = PauseCheckpointCallback(run_control.pause_after_minutes, Path(self.save_path), self.env_name)
+                self.callbacks.append(pause)
+
+        def setup_experiment(self) -> Any:
+            experiment = super().setup_experiment()
+            if experiment is not None and run_control.resume is not None:
+                model = experiment[0]
+                continue_evaluations(self.callbacks, model.num_timesteps, model.n_envs, run_control.resume)
+            return experiment
+
+        def learn(self, model: BaseAlgorithm) -> None:
+            page = None if run_control.label_page is None else start_label_page(model, *run_control.label_page)
+            try:
+                if run_control.resume is None:
+                    super().learn(model)
+                else:
+                    self.resumed_to_the_end = learn_resumed(model, self.n_timesteps, self.callbacks, self.log_interval)
+            finally:
+                if page is not None:
+                    page.shutdown()
+
+        def save_trained_model(self, model: BaseAlgorithm) -> None:
+            super().save_trained_model(model)
+            # Only now: a run killed before its final model is written keeps its checkpoint, and --resume still works.
+            if run_control.resume is not None and getattr(self, "resumed_to_the_end", False):
+                remove_resume_checkpoint(run_control.resume)
+
+    rl_zoo3.train.ExperimentManager = OwnRunFolderExperimentManager  # type: ignore[misc]
