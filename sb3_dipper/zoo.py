@@ -60,6 +60,7 @@ from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.logger import CSVOutputFormat
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
+from sb3_dipper.common.deprecation import in_new_form
 from sb3_dipper.common.files import read_npz, write_bytes_atomically
 from sb3_dipper.dac import DAC
 from sb3_dipper.dipper import DIPPER
@@ -632,7 +633,10 @@ def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mappin
     :param given: the hyperparameters of this command, as rl-zoo3 records them
     """
     config = run_folder / env_name / CONFIG_FILE
-    differing = differing_hyperparameters(recorded_hyperparameters(config), as_recorded(given))
+    # A run started with the lower level's bc_coef: 0.02 resumes with demo_kwargs: {bc_coef: 0.02}, the same setting.
+    recorded = (recorded_hyperparameters(config), as_recorded(given))
+    started, wanted = (in_new_form(hyperparameters, ZOO_ALGORITHMS.values()) for hyperparameters in recorded)
+    differing = differing_hyperparameters(started, wanted)
     if not differing:
         return
     lines = "\n".join(

@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import sys
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, NamedTuple
 
 
@@ -79,6 +79,18 @@ def move_deprecated_parameters(
         )
         moved_kwargs[group] = {**(moved_kwargs.get(group) or {}), **replacement}
     return moved_kwargs
+
+
+def in_new_form(hyperparameters: Mapping[str, Any], algorithms: Iterable[type]) -> dict[str, Any]:
+    """``hyperparameters`` with the deprecated parameters of any of ``algorithms`` moved into their groups, without a
+    warning: the same settings in today's form, so that hyperparameters recorded in the old form (a run's
+    ``config.yml``) compare equal to the same ones given in the new."""
+    declared = {
+        name: moved for algorithm in algorithms for name, moved in getattr(algorithm, "deprecated_parameters", {}).items()
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return move_deprecated_parameters("", declared, hyperparameters)
 
 
 def taking_deprecated_parameters(init: Callable[..., None]) -> Callable[..., None]:
