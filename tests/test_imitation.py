@@ -1,5 +1,10 @@
 """Demonstrations (npz round trip, malformed files) and the lower level's Q-filtered behaviour cloning."""
 
+import json
+import re
+import warnings
+import zipfile
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -357,3 +362,45 @@ def test_lower_targets_are_clipped_when_bounds_are_given(with_demos, maze_demos,
 def test_bad_target_bounds_are_refused(maze_env):
     with pytest.raises(ValueError, match="target_q_bounds must be"):
         tiny_model(DIPPER, maze_env, low_level_kwargs=dict(target_q_bounds=(0.0, -1.0)))
+
+
+# ------------------------------------------------------------------------------- demo_kwargs, and the form before it
+
+
+def test_the_demo_settings_before_demo_kwargs_still_work_and_warn(maze_demos, tmp_path):
+    """Given to the constructor and to load, read and set as attributes, and in a file saved before demo_kwargs."""
+    old_form = dict(demo_path=str(maze_demos), n_demos=2, q_filter=False, bc_coef=0.5)
+    message = (
+        "HIER's demo_path, n_demos, bc_coef, q_filter are deprecated: pass demo_kwargs={'demo_path': "
+        f"{str(maze_demos)!r}, 'n_demos': 2, 'bc_coef': 0.5, 'q_filter': False}} instead"
+    )
+    with pytest.warns(DeprecationWarning, match=re.escape(message)):
+        model = tiny_model(HIER, short_maze(), demo_kwargs=dict(bc_coef=0.1, demo_share=0.25), **old_form)
+    expected = {**DEFAULT_DEMO_KWARGS, **old_form, "demo_share": 0.25}  # a deprecated name wins over its key
+    assert model.demo_kwargs == expected and model.lower.bc_coef == 0.5 and len(model.lower.demonstrations) == 400
+    with pytest.warns(DeprecationWarning, match=r"HIER.bc_coef is deprecated: use model.demo_kwargs\['bc_coef'\]"):
+        assert model.bc_coef == 0.5
+    with pytest.warns(DeprecationWarning, match="HIER.rl_coef is deprecated"):
+        model.rl_coef = 0.01
+    assert model.demo_kwargs["rl_coef"] == 0.01
+    model.save(tmp_path / "new.zip")
+
+    # The file as HIER wrote it before demo_kwargs: each setting an attribute of its own.
+    with zipfile.ZipFile(tmp_path / "new.zip") as archive:
+        files = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(files["data"])
+    data.update(data.pop("demo_kwargs"))
+    files["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(tmp_path / "old.zip", "w") as archive:
+        for name, content in files.items():
+            archive.writestr(name, content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use
+        loaded = HIER.load(tmp_path / "old.zip", env=short_maze())
+    assert loaded.demo_kwargs == {**expected, "rl_coef": 0.01} and not set(DEFAULT_DEMO_KWARGS) & set(vars(loaded))
+    assert len(loaded.lower.demonstrations) == 400
+    # A deprecated name given to load changes its key only, over the file's settings in either form.
+    for path in ("old.zip", "new.zip"):
+        with pytest.warns(DeprecationWarning, match=r"pass demo_kwargs=\{'demo_share': 0.5\} instead"):
+            reloaded = HIER.load(tmp_path / path, env=short_maze(), demo_share=0.5)
+        assert reloaded.demo_kwargs == {**expected, "rl_coef": 0.01, "demo_share": 0.5}, path
