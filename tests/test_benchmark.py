@@ -438,6 +438,8 @@ def test_a_variant_changes_only_what_it_names_and_skips_algorithms_without_the_k
     assert overrides == {"low_policy_kwargs": {**entry["low_policy_kwargs"], "optimizer_kwargs": {"fused": True}}, "n_envs": 4}
     assert benchmark.variant_overrides("sac", ENV_ID, fused) is None
     assert benchmark.variant_overrides("sac", ENV_ID, {"n_envs": 4}) == {"n_envs": 4}
+    # A deprecated keyword is one the algorithm takes (into its demo_kwargs).
+    assert benchmark.variant_overrides("dipper", ENV_ID, {"bc_coef": 1.0}) == {"bc_coef": 1.0}
 
 
 def test_a_stamped_command_reruns_with_the_arguments_it_ran_with():

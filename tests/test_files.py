@@ -244,12 +244,17 @@ def other_env_demos(maze_demos, path, part):
     return path
 
 
+def demonstrations(model_class, **settings):
+    """The keywords that give ``model_class`` demonstrations: DAC's and SACDemo's own, a hierarchy's demo_kwargs."""
+    return settings if model_class in (DAC, SACDemo) else dict(demo_kwargs=settings)
+
+
 @pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, DAC, SACDemo])
 @pytest.mark.parametrize("part", ["observation", "actions"])
 def test_demonstrations_of_another_env_are_refused_at_construction(model_class, part, maze_demos, tmp_path):
     path = other_env_demos(maze_demos, tmp_path / "push.npz", part)
     with pytest.raises(ValueError, match=f"{part}.*shape.*{re.escape(str(path))}.*recorded on another env.*FetchPush-v4"):
-        any_tiny_model(model_class, short_maze(), demo_path=str(path))
+        any_tiny_model(model_class, short_maze(), **demonstrations(model_class, demo_path=str(path)))
 
 
 @pytest.mark.parametrize("model_class", [HIER, DAC, SACDemo])
@@ -259,7 +264,7 @@ def test_n_demos_must_be_between_one_and_the_episodes_in_the_file(model_class, n
         "n_demos" if n_demos == 0 else rf"holds 2 episodes \({re.escape(str(maze_demos))}\): choose n_demos between 1 and 2"
     )
     with pytest.raises(ValueError, match=message):
-        any_tiny_model(model_class, short_maze(), demo_path=str(maze_demos), n_demos=n_demos)
+        any_tiny_model(model_class, short_maze(), **demonstrations(model_class, demo_path=str(maze_demos), n_demos=n_demos))
 
 
 @pytest.mark.parametrize(

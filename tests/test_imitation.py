@@ -1,5 +1,10 @@
 """Demonstrations (npz round trip, malformed files) and the lower level's Q-filtered behaviour cloning."""
 
+import json
+import re
+import warnings
+import zipfile
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,7 +18,7 @@ from sb3_dipper.common.demonstrations import (
     normalize_like_demonstrations,
 )
 from sb3_dipper.common import imitation
-from sb3_dipper.common.imitation import DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
+from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
 from sb3_dipper.common.low_level import clipped_soft_target
 from sb3_dipper.common.subgoals import SubgoalSpace
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
@@ -139,7 +144,7 @@ def test_q_filter_keeps_demo_actions_the_critic_prefers():
 def test_lower_level_clones_demonstrations(model_class, maze_demos, tmp_path):
     from stable_baselines3.common.logger import configure
 
-    model = tiny_model(model_class, short_maze(), demo_path=str(maze_demos), n_demos=1, demo_share=0.25)
+    model = tiny_model(model_class, short_maze(), demo_kwargs=dict(demo_path=str(maze_demos), n_demos=1, demo_share=0.25))
     assert len(model.lower.demonstrations) == 200
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(200, log_interval=1)
@@ -169,7 +174,8 @@ def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, m
     demonstrations = load_demonstrations(maze_demos).first_episodes(2)
     expected_mean = demonstrations.observations["observation"].astype(np.float64).mean(0)
     env = VecNormalize(short_maze(), norm_reward=False)
-    model = tiny_model(model_class, env, demo_path=str(maze_demos), n_demos=2, normalize_from_demos=True)
+    demo_kwargs = dict(demo_path=str(maze_demos), n_demos=2, normalize_from_demos=True)
+    model = tiny_model(model_class, env, demo_kwargs=demo_kwargs)
     model.learn(100)
     np.testing.assert_allclose(env.obs_rms["observation"].mean, expected_mean)
     np.testing.assert_allclose(model.low_normalizer.statistics["observation"][0], expected_mean)
@@ -177,20 +183,22 @@ def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, m
     fresh = VecNormalize(short_maze(seed=3), norm_reward=False)
     loaded = model_class.load(tmp_path / "model.zip", env=fresh)
     np.testing.assert_allclose(fresh.obs_rms["observation"].mean, expected_mean)
-    assert not fresh.training and loaded.normalize_from_demos
+    assert not fresh.training and loaded.demo_kwargs == {**DEFAULT_DEMO_KWARGS, **demo_kwargs}
     another = VecNormalize(short_maze(seed=5), norm_reward=False)
     model.set_env(another)
     np.testing.assert_allclose(another.obs_rms["observation"].mean, expected_mean)
 
 
 def test_normalize_from_demos_needs_demonstrations_and_vec_normalize(maze_demos, maze_env):
-    with pytest.raises(ValueError, match=r"normalize_from_demos=True .* pass demo_path"):
-        tiny_model(DIPPER, VecNormalize(short_maze()), normalize_from_demos=True)
-    unwrapped = r"normalize_from_demos=True .* not wrapped in VecNormalize\(norm_obs=True\)"
+    needs_demos = r"demo_kwargs\['normalize_from_demos'\]=True .* give demo_kwargs\['demo_path'\] too"
+    with pytest.raises(ValueError, match=needs_demos):
+        tiny_model(DIPPER, VecNormalize(short_maze()), demo_kwargs=dict(normalize_from_demos=True))
+    unwrapped = r"demo_kwargs\['normalize_from_demos'\]=True .* not wrapped in VecNormalize\(norm_obs=True\)"
+    demo_kwargs = dict(demo_path=str(maze_demos), normalize_from_demos=True)
     with pytest.raises(ValueError, match=unwrapped):
-        tiny_model(DIPPER, maze_env, demo_path=str(maze_demos), normalize_from_demos=True)
+        tiny_model(DIPPER, maze_env, demo_kwargs=demo_kwargs)
     env = VecNormalize(short_maze(), norm_reward=False)
-    model = tiny_model(DIPPER, env, demo_path=str(maze_demos), normalize_from_demos=True)
+    model = tiny_model(DIPPER, env, demo_kwargs=demo_kwargs)
     with pytest.raises(ValueError, match=unwrapped):
         model.set_env(maze_env)
     assert model.env is env, "a refused env leaves the model as it was"
@@ -222,7 +230,7 @@ def test_auto_dart_demonstrations_are_the_experts_noisy_episodes_cached_apart(tm
     assert not default_demonstration_path("PointMazeFourRooms-v0").exists()
     single = demonstrations_for("auto", env)
     assert single.n_episodes == 1 and not np.array_equal(single.actions, dart.first_episodes(1).actions)
-    model = tiny_model(DIPPER, env, demo_path="auto:dart3", n_demos=3)
+    model = tiny_model(DIPPER, env, demo_kwargs=dict(demo_path="auto:dart3", n_demos=3))
     assert model.lower.demonstrations is not None and len(model.lower.demonstrations) == len(dart)
 
 
@@ -230,22 +238,22 @@ def test_auto_dart_without_n_demos_clones_all_its_episodes(tmp_path, monkeypatch
     """The reported case: 'auto:dart20' without n_demos made and cached 20 episodes and cloned one."""
     monkeypatch.setenv("SB3_DIPPER_CACHE", str(tmp_path))
     env = short_maze()
-    all_three = tiny_model(DIPPER, env, demo_path="auto:dart3").lower.demonstrations
+    all_three = tiny_model(DIPPER, env, demo_kwargs=dict(demo_path="auto:dart3")).lower.demonstrations
     assert all_three is not None and len(np.unique(all_three.last_step)) == 3
     assert len(all_three) == len(demonstrations_for("auto:dart3", env))
-    two = tiny_model(HIER, env, demo_path="auto:dart3", n_demos=2).lower.demonstrations
+    two = tiny_model(HIER, env, demo_kwargs=dict(demo_path="auto:dart3", n_demos=2)).lower.demonstrations
     assert two is not None and len(np.unique(two.last_step)) == 2
     message = r"n_demos=4 asks for more episodes than demo_path='auto:dart3' makes \(3\): for more, use demo_path='auto:dart4'"
     with pytest.raises(ValueError, match=message + r".*at most n_demos=3 \(leaving n_demos out uses all 3\)"):
-        tiny_model(DIPPER, env, demo_path="auto:dart3", n_demos=4)
+        tiny_model(DIPPER, env, demo_kwargs=dict(demo_path="auto:dart3", n_demos=4))
     with pytest.raises(ValueError, match=r"n_demos=2 asks for more episodes than demo_path='auto' makes \(1\)"):
-        tiny_model(HIER, env, demo_path="auto", n_demos=2)
+        tiny_model(HIER, env, demo_kwargs=dict(demo_path="auto", n_demos=2))
 
 
 @pytest.mark.parametrize("spec", ["auto:dart0", "auto:dart", "auto:20", "auto:dart-5"])
 def test_malformed_auto_demonstration_specs_say_what_is_accepted(spec):
     with pytest.raises(ValueError, match=r"demo_path='auto:.*'auto' \(one episode\) or 'auto:dart<N>'"):
-        tiny_model(DIPPER, short_maze(), demo_path=spec)
+        tiny_model(DIPPER, short_maze(), demo_kwargs=dict(demo_path=spec))
 
 
 class _LineEnv(gym.Env):
@@ -344,7 +352,7 @@ def test_lower_targets_are_clipped_when_bounds_are_given(with_demos, maze_demos,
 
     monkeypatch.setattr(imitation, "clipped_soft_target", recording_target)
     demo_kwargs = dict(demo_path=str(maze_demos)) if with_demos else {}
-    model = tiny_model(DIPPER, short_maze(), low_level_kwargs=dict(target_q_bounds=(-2.0, 0.0)), **demo_kwargs)
+    model = tiny_model(DIPPER, short_maze(), low_level_kwargs=dict(target_q_bounds=(-2.0, 0.0)), demo_kwargs=demo_kwargs)
     model.learn(120)
     assert targets, "the clipped update ran"
     for bounds, target in targets:
@@ -354,3 +362,45 @@ def test_lower_targets_are_clipped_when_bounds_are_given(with_demos, maze_demos,
 def test_bad_target_bounds_are_refused(maze_env):
     with pytest.raises(ValueError, match="target_q_bounds must be"):
         tiny_model(DIPPER, maze_env, low_level_kwargs=dict(target_q_bounds=(0.0, -1.0)))
+
+
+# ------------------------------------------------------------------------------- demo_kwargs, and the form before it
+
+
+def test_the_demo_settings_before_demo_kwargs_still_work_and_warn(maze_demos, tmp_path):
+    """Given to the constructor and to load, read and set as attributes, and in a file saved before demo_kwargs."""
+    old_form = dict(demo_path=str(maze_demos), n_demos=2, q_filter=False, bc_coef=0.5)
+    message = (
+        "HIER's demo_path, n_demos, bc_coef, q_filter are deprecated: pass demo_kwargs={'demo_path': "
+        f"{str(maze_demos)!r}, 'n_demos': 2, 'bc_coef': 0.5, 'q_filter': False}} instead"
+    )
+    with pytest.warns(DeprecationWarning, match=re.escape(message)):
+        model = tiny_model(HIER, short_maze(), demo_kwargs=dict(bc_coef=0.1, demo_share=0.25), **old_form)
+    expected = {**DEFAULT_DEMO_KWARGS, **old_form, "demo_share": 0.25}  # a deprecated name wins over its key
+    assert model.demo_kwargs == expected and model.lower.bc_coef == 0.5 and len(model.lower.demonstrations) == 400
+    with pytest.warns(DeprecationWarning, match=r"HIER.bc_coef is deprecated: use model.demo_kwargs\['bc_coef'\]"):
+        assert model.bc_coef == 0.5
+    with pytest.warns(DeprecationWarning, match="HIER.rl_coef is deprecated"):
+        model.rl_coef = 0.01
+    assert model.demo_kwargs["rl_coef"] == 0.01
+    model.save(tmp_path / "new.zip")
+
+    # The file as HIER wrote it before demo_kwargs: each setting an attribute of its own.
+    with zipfile.ZipFile(tmp_path / "new.zip") as archive:
+        files = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(files["data"])
+    data.update(data.pop("demo_kwargs"))
+    files["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(tmp_path / "old.zip", "w") as archive:
+        for name, content in files.items():
+            archive.writestr(name, content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use
+        loaded = HIER.load(tmp_path / "old.zip", env=short_maze())
+    assert loaded.demo_kwargs == {**expected, "rl_coef": 0.01} and not set(DEFAULT_DEMO_KWARGS) & set(vars(loaded))
+    assert len(loaded.lower.demonstrations) == 400
+    # A deprecated name given to load changes its key only, over the file's settings in either form.
+    for path in ("old.zip", "new.zip"):
+        with pytest.warns(DeprecationWarning, match=r"pass demo_kwargs=\{'demo_share': 0.5\} instead"):
+            reloaded = HIER.load(tmp_path / path, env=short_maze(), demo_share=0.5)
+        assert reloaded.demo_kwargs == {**expected, "rl_coef": 0.01, "demo_share": 0.5}, path

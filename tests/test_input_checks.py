@@ -92,6 +92,16 @@ BAD_SETTINGS = [
     ("q_filter", "yes", "must be True or False", [SACDemo]),
 ]
 
+# (demo_kwargs key, bad value, what the message says after demo_kwargs['key']), for every hierarchical algorithm.
+BAD_DEMO_SETTINGS = [
+    ("n_demos", 0, "must be at least 1"),
+    ("n_demos", 2.5, r"must be a whole number \(an integer >= 1\)"),
+    ("demo_share", 1.5, PROBABILITY),
+    ("bc_coef", -1.0, NON_NEGATIVE),
+    ("bc_coef", NAN, NON_NEGATIVE),
+    ("rl_coef", -1.0, NON_NEGATIVE),
+]
+
 # Every integer-valued constructor setting; the zoo and YAML may hand any of them over as a float or a string.
 INTEGER_SETTINGS = (
     "option_steps",
@@ -248,6 +258,7 @@ DICT_SETTINGS = {
     "low_level_kwargs": {"target_update_interval": 1},
     "reward_model_kwargs": {"net_arch": [16]},
     "discriminator_kwargs": {"net_arch": [16]},
+    "demo_kwargs": {"bc_coef": 0.01},
 }
 
 
@@ -263,6 +274,42 @@ def test_the_dicts_given_to_a_constructor_are_left_as_they_were(model_class):
     # SB3 SAC itself, which keeps use_sde among its own policy_kwargs).
     if not isinstance(model, SAC):
         assert model.policy_kwargs == DICT_SETTINGS["policy_kwargs"]
+
+
+# ---------------------------------------------------------------------------------------------------- demo_kwargs
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize(("key", "value", "message"), BAD_DEMO_SETTINGS)
+def test_a_demo_setting_out_of_range_is_refused_naming_its_demo_kwargs_key(env, model_class, key, value, message):
+    with pytest.raises(ValueError, match=rf"demo_kwargs\['{key}'\] {message}"):
+        tiny_model(model_class, env, demo_kwargs={key: value})
+
+
+def test_a_demo_setting_is_checked_given_by_its_deprecated_name_in_a_file_and_to_load(saved_models, tmp_path):
+    with pytest.warns(DeprecationWarning), pytest.raises(ValueError, match=rf"demo_kwargs\['bc_coef'\] {NON_NEGATIVE}"):
+        tiny_model(HIER, short_maze(), bc_coef=-1.0)
+    saved = saved_models / "HIER.zip"
+    edited = with_saved_setting(saved, tmp_path / "edited.zip", "demo_kwargs", {"demo_share": 2.0})
+    with pytest.raises(
+        ValueError,
+        match=rf"{re.escape(str(edited))} holds .*: demo_kwargs\['demo_share'\] {PROBABILITY}.*HIER.load\(path, demo_kwargs=",
+    ):
+        HIER.load(edited)
+    with pytest.raises(ValueError, match=r"HIER.load\(.*, demo_kwargs=\{.*'rl_coef': -1.0.*\}\): demo_kwargs\['rl_coef'\]"):
+        HIER.load(saved, demo_kwargs={"rl_coef": -1.0})
+
+
+def test_demo_settings_from_the_zoo_are_converted_and_a_misspelt_key_is_named(env):
+    model = tiny_model(HIER, env, demo_kwargs={"n_demos": "2.0", "bc_coef": "1e-2"})
+    assert model.demo_kwargs["n_demos"] == 2 and type(model.demo_kwargs["n_demos"]) is int
+    assert model.demo_kwargs["bc_coef"] == 0.01 and model.lower.bc_coef == 0.01
+    with pytest.raises(TypeError, match=r"^demo_kwargs got an unexpected key 'bc_coeff'; did you mean 'bc_coef'\?$"):
+        tiny_model(HIER, env, demo_kwargs={"bc_coeff": 1.0})
+    # A misspelt deprecated name is answered with its new form.
+    misspelt = r"HIER got an unexpected keyword argument 'bc_coeff'; did you mean demo_kwargs\['bc_coef'\]\?$"
+    with pytest.raises(TypeError, match=misspelt):
+        tiny_model(HIER, env, bc_coeff=1.0)
 
 
 def test_one_policy_kwargs_dict_builds_hier_then_dipper(env):

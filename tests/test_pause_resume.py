@@ -283,3 +283,13 @@ def test_the_hyperparameters_of_a_resumed_run_are_compared_with_its_record(tmp_p
     ]
     with pytest.raises(FileNotFoundError, match=r"config.yml is missing: .*start a new run"):
         check_resumed_hyperparameters(tmp_path, "FetchPush-v4", same)
+
+
+def test_a_run_started_before_demo_kwargs_resumes_with_the_same_settings_in_the_new_form(tmp_path):
+    """A run recorded with the lower level's settings as keys of their own (bc_coef: 0.02) is the same experiment as one
+    given them in demo_kwargs, and DIPPER's planning: 'subgoal' the same as planner_kwargs: {mode: 'subgoal'}."""
+    write_config(tmp_path, "PointMazeFourRooms-v0", {**STARTED, "demo_path": "auto", "bc_coef": 0.02, "planning": "subgoal"})
+    new_form = {**STARTED, "demo_kwargs": {"demo_path": "auto", "bc_coef": 0.02}, "planner_kwargs": {"mode": "subgoal"}}
+    check_resumed_hyperparameters(tmp_path, "PointMazeFourRooms-v0", new_form)
+    with pytest.raises(ValueError, match=r"demo_kwargs: started with \{'demo_path': 'auto', 'bc_coef': 0.02\}, given"):
+        check_resumed_hyperparameters(tmp_path, "PointMazeFourRooms-v0", {**new_form, "demo_kwargs": {"demo_path": "auto"}})

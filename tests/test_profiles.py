@@ -11,6 +11,7 @@ import yaml
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
+from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS
 from sb3_dipper.zoo import ZOO_ALGORITHMS, hyperparams_dir
 from tests.test_zoo import PAPER_TASKS
 from zoo_scripts.configs import load_entry, make_model
@@ -44,9 +45,15 @@ def test_cpu_profiles_are_cpu_sized_and_paper_files_are_paper_sized(algo):
         assert widest_layer(paper) == 512, (algo, env_id)
         # K, the demonstration and the budget-independent settings of the algorithm stay the paper's, but for the
         # demonstrations a run measured beyond the paper's one.
-        for key in ("option_steps", "segment_length", "demo_path", "beta", "value_reg_coef", "ent_coef", "gamma"):
-            expected = MEASURED_DEMONSTRATIONS.get((algo, env_id)) if key == "demo_path" else None
-            assert cpu.get(key) == (expected or paper.get(key)), (algo, env_id, key)
+        for key in ("option_steps", "segment_length", "beta", "value_reg_coef", "ent_coef", "gamma"):
+            assert cpu.get(key) == paper.get(key), (algo, env_id, key)
+        expected = MEASURED_DEMONSTRATIONS.get((algo, env_id))
+        assert demo_path(cpu) == (expected or demo_path(paper)), (algo, env_id)
+
+
+def demo_path(entry: dict) -> str | None:
+    """The demonstrations of an entry: in ``demo_kwargs`` for the hierarchical algorithms, DAC's own parameter."""
+    return entry.get("demo_kwargs", {}).get("demo_path", entry.get("demo_path"))
 
 
 FETCH_MANIPULATION = ("FetchPickAndPlace-v4", "FetchPickAndPlaceFixed-v0", "FetchPush-v4", "FetchPushFixed-v0")
@@ -138,20 +145,42 @@ AUTHORS_BC_COEF = {
 
 @pytest.mark.parametrize("algo", ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "piper", "saga", "sac_demo"])
 def test_paper_scale_files_weigh_behaviour_cloning_as_the_authors(algo):
-    algorithm = ZOO_ALGORITHMS[algo]
-    default = inspect.signature(algorithm).parameters["bc_coef"].default
     for env_id, bc_coef in AUTHORS_BC_COEF.items():
-        entry = load_entry(algo, env_id, PAPER_DIR)
-        assert entry["demo_path"] == "auto", (algo, env_id)
-        assert entry.get("bc_coef", default) == bc_coef, (algo, env_id)
+        settings = cloning_settings(algo, env_id, PAPER_DIR)
+        assert settings["demo_path"] == "auto", (algo, env_id)
+        assert settings["bc_coef"] == bc_coef, (algo, env_id)
+
+
+def test_an_entry_in_the_form_before_demo_kwargs_builds_the_same_model_with_a_warning(tmp_path):
+    """The YAML files of before (the lower level's demonstration settings as keys of their own), and the zoo's
+    ``-params bc_coef:...`` on top of an entry in the new form, still work."""
+    new_form = "  demo_kwargs: {demo_path: 'auto', bc_coef: 0.02}\n"
+    text = (hyperparams_dir() / "dipper.yml").read_text()
+    assert new_form in text
+    (tmp_path / "dipper.yml").write_text(text.replace(new_form, "  demo_path: 'auto'\n  bc_coef: 0.02\n"))
+    overrides = dict(buffer_size=1000)
+    old_form = r"demo_path, bc_coef are deprecated: pass demo_kwargs=\{'demo_path': 'auto', 'bc_coef': 0.02\}"
+    with pytest.warns(DeprecationWarning, match=old_form):
+        old, old_env, _ = make_model("dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides=overrides, hyperparams=tmp_path)
+    new, new_env, _ = make_model("dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides=overrides)
+    assert old.demo_kwargs == new.demo_kwargs and new.demo_kwargs["bc_coef"] == old.lower.bc_coef == 0.02
+    with pytest.warns(DeprecationWarning, match=r"bc_coef is deprecated: pass demo_kwargs=\{'bc_coef': 0.5\} instead"):
+        overridden, env, _ = make_model("dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides={**overrides, "bc_coef": 0.5})
+    assert overridden.demo_kwargs == {**new.demo_kwargs, "bc_coef": 0.5}
+    for venv in (old_env, new_env, env):
+        venv.close()
 
 
 CLONING_SETTINGS = ("demo_path", "n_demos", "demo_share", "bc_coef", "rl_coef", "q_filter")
 
 
 def cloning_settings(algo: str, env_id: str, directory: Path) -> dict:
-    """The demonstration and cloning settings an entry builds its model with, the constructor's defaults included."""
+    """The demonstration and cloning settings an entry builds its model with, the constructor's defaults included: a
+    hierarchy's ``demo_kwargs``, the flat SACDemo's parameters of their own."""
     entry = load_entry(algo, env_id, directory)
+    if issubclass(ZOO_ALGORITHMS[algo], HierarchicalAlgorithm):
+        demo_kwargs = {**DEFAULT_DEMO_KWARGS, **entry.get("demo_kwargs", {})}
+        return {key: demo_kwargs[key] for key in CLONING_SETTINGS}
     parameters = inspect.signature(ZOO_ALGORITHMS[algo]).parameters
     return {key: entry.get(key, parameters[key].default) for key in CLONING_SETTINGS}
 

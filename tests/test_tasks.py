@@ -29,7 +29,7 @@ def demo_cache(tmp_path_factory, monkeypatch):
 @pytest.mark.parametrize(("env_id", "option_steps", "with_demos"), CASES)
 def test_trains_a_few_hundred_steps_on_every_task(model_class, env_id, option_steps, with_demos):
     env = make_vec_env(env_id, n_envs=1, seed=0, env_kwargs={"max_episode_steps": 2 * option_steps})
-    demos = dict(demo_path="auto", demo_share=0.25) if with_demos else {}
+    demos = dict(demo_kwargs=dict(demo_path="auto", demo_share=0.25)) if with_demos else {}
     model = tiny_model(model_class, env, option_steps=option_steps, learning_starts=60, **demos)
     if with_demos:
         assert len(model.lower.demonstrations) > 0

@@ -33,9 +33,7 @@ def trained_dipper(tmp_path_factory):
     model = tiny_model(
         DIPPER,
         short_maze(),
-        demo_path=str(demos),
-        n_demos=1,
-        demo_share=0.25,
+        demo_kwargs=dict(demo_path=str(demos), n_demos=1, demo_share=0.25),
         nll_coef=1.0,
         hindsight_actions=True,
         truncate_at_goal=True,

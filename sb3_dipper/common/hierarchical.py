@@ -21,7 +21,7 @@ import time
 import warnings
 from abc import abstractmethod
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -37,6 +37,7 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_normalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
+from sb3_dipper.common.deprecation import MovedParameter
 from sb3_dipper.common.demonstrations import Demonstrations, demonstrations_for, normalize_like_demonstrations
 from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical_policy import (
@@ -46,7 +47,7 @@ from sb3_dipper.common.hierarchical_policy import (
     PolicyHighLevel,
     SACPolicyLowLevel,
 )
-from sb3_dipper.common.imitation import DemonstrationBuffer, DemoSAC
+from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, DemoSAC, checked_demo_kwargs
 from sb3_dipper.common.loading import CheckedLoading
 from sb3_dipper.common.low_level import (
     LevelLogger,
@@ -61,7 +62,6 @@ from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransit
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import (
-    InvalidSetting,
     as_float,
     as_int,
     as_optional_int,
@@ -106,20 +106,25 @@ class HierarchicalAlgorithm(CheckedLoading):
     :param low_policy_kwargs: ``policy_kwargs`` of the lower SAC (for example ``net_arch``)
     :param low_level_kwargs: any other keyword argument of the lower ``SAC``
     :param random_subgoal_prob: probability that a subgoal is drawn uniformly at random during training
-    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (see
-        :mod:`sb3_dipper.common.imitation`): an npz file, a Minari dataset directory, ``"auto"`` for the task's
-        single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of its scripted expert (beyond
-        the paper; :func:`~sb3_dipper.common.demonstrations.demonstrations_for`); ``None``: no cloning
-    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
-        one of ``"auto"``, the first episode of a file or dataset)
-    :param demo_share: fraction of each lower batch drawn from the demonstrations
-    :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
-    :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
-    :param q_filter: clone only demo actions the lower critic values above the policy's
-    :param normalize_from_demos: scale observations by the demonstrations' states (their mean and std + 0.01), fixed,
-        instead of the ``VecNormalize`` running statistics of the visited states (beyond the paper; needs ``demo_path``
-        and an env wrapped in ``VecNormalize(norm_obs=True)``; see
-        :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
+    :param demo_kwargs: the lower level's Q-filtered behaviour cloning of demonstrations (see
+        :mod:`sb3_dipper.common.imitation`; default: none), a dict with the keys
+
+        * ``demo_path``: an npz file, a Minari dataset directory, ``"auto"`` for the task's single default scripted
+          demonstration or ``"auto:dart<N>"`` for N DART episodes of its scripted expert (beyond the paper;
+          :func:`~sb3_dipper.common.demonstrations.demonstrations_for`); ``None`` (default): no cloning
+        * ``n_demos``: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``,
+          the one of ``"auto"``, the first episode of a file or dataset)
+        * ``demo_share``: fraction of each lower batch drawn from the demonstrations (default 0.125)
+        * ``bc_coef``: weight of the behaviour-cloning loss (PIPER's lambda_2; default 0.0078)
+        * ``rl_coef``: weight of SAC's actor loss while cloning (PIPER's lambda_1; default 1e-3)
+        * ``q_filter``: clone only demo actions the lower critic values above the policy's (default ``True``)
+        * ``normalize_from_demos``: scale observations by the demonstrations' states (their mean and std + 0.01),
+          fixed, instead of the ``VecNormalize`` running statistics of the visited states (beyond the paper; needs
+          ``demo_path`` and an env wrapped in ``VecNormalize(norm_obs=True)``; see
+          :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`; default ``False``)
+
+        For example ``dict(demo_path="auto", bc_coef=0.02)``. The seven were parameters of their own before, and are
+        still taken by their names, with a ``DeprecationWarning``
     :param greedy_episode_prob: probability that an env's training episode is collected with the lower level acting
         greedily (its deterministic action, as in evaluation) while the higher level explores as usual; drawn per env
         at each episode's start (beyond the paper: HAC's subgoal testing per episode; 0: every episode explores)
@@ -140,8 +145,13 @@ class HierarchicalAlgorithm(CheckedLoading):
     # The lower SAC's update count, saved with the model because the lower SAC is rebuilt on load: its logged count and
     # DIPPER's value-snapshot schedule resume where they were.
     _lower_n_updates: int = 0
+    # The lower level's demonstration settings, each of which was a parameter (and is taken by its name, deprecated).
+    deprecated_parameters: ClassVar[Mapping[str, MovedParameter]] = {
+        name: MovedParameter("demo_kwargs", name) for name in DEFAULT_DEMO_KWARGS
+    }
+    # The settings checked and completed with their defaults (a model saved before a setting existed loads with it).
+    demo_kwargs: dict[str, Any]
     # Models saved before this setting existed load with its default.
-    normalize_from_demos: bool = False
     greedy_episode_prob: float = 0.0
     # Whether the subgoal space is the one the env declared (no subgoal_space given): then an env the model is loaded
     # onto, or given with set_env, must declare the same. Models saved before this was recorded are checked too.
@@ -167,13 +177,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
         random_subgoal_prob: float = 0.0,
-        demo_path: str | None = None,
-        n_demos: int | None = None,
-        demo_share: float = 0.125,
-        bc_coef: float = 0.0078,
-        rl_coef: float = 1e-3,
-        q_filter: bool = True,
-        normalize_from_demos: bool = False,
+        demo_kwargs: dict[str, Any] | None = None,
         greedy_episode_prob: float = 0.0,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -223,13 +227,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.low_policy_kwargs = dict(low_policy_kwargs or {})
         self.low_level_kwargs = dict(low_level_kwargs or {})
         self.random_subgoal_prob = random_subgoal_prob
-        self.demo_path = demo_path
-        self.n_demos = n_demos
-        self.demo_share = demo_share
-        self.bc_coef = bc_coef
-        self.rl_coef = rl_coef
-        self.q_filter = q_filter
-        self.normalize_from_demos = normalize_from_demos
+        self.demo_kwargs = dict(demo_kwargs or {})
         self.greedy_episode_prob = greedy_episode_prob
         self.max_episode_steps = max_episode_steps
         self.low_normalizer: SubgoalNormalizer | None = None
@@ -264,23 +262,14 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.batch_size = as_int("batch_size", self.batch_size, 1)
         self.train_freq = as_int("train_freq", self.train_freq, 1, "the lower level trains every train_freq primitive steps")
         self.gradient_steps = as_int("gradient_steps", self.gradient_steps, 0)
-        self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "None: all the episodes demo_path makes")
         self.max_episode_steps = as_optional_int(
             "max_episode_steps", self.max_episode_steps, 1, "None reads the env's time limit"
         )
         self.tau = as_float("tau", self.tau, 0.0, 1.0, low_open=True)
         self.gamma = as_float("gamma", self.gamma, 0.0, 1.0, low_open=True)
         self.random_subgoal_prob = as_float("random_subgoal_prob", self.random_subgoal_prob, 0.0, 1.0)
-        self.demo_share = as_float("demo_share", self.demo_share, 0.0, 1.0)
-        self.bc_coef = as_float("bc_coef", self.bc_coef, 0.0, reason="it weighs a loss")
-        self.rl_coef = as_float("rl_coef", self.rl_coef, 0.0, reason="it weighs a loss")
         self.greedy_episode_prob = as_float("greedy_episode_prob", self.greedy_episode_prob, 0.0, 1.0)
-        if self.normalize_from_demos and self.demo_path is None:
-            raise InvalidSetting(
-                "normalize_from_demos",
-                "normalize_from_demos=True scales observations by the demonstrations' states: pass demo_path too "
-                "(an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or set normalize_from_demos=False",
-            )
+        self.demo_kwargs = checked_demo_kwargs(self.demo_kwargs)
 
     def _setup_model(self) -> None:
         self._check_settings()
@@ -292,8 +281,9 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
             self._warn_if_options_outlast_episodes()
         assert self.subgoal_space is not None, "a saved model always carries its subgoal space"
-        demonstrations = self._load_demonstrations() if self.demo_path is not None and self.env is not None else None
-        if demonstrations is not None and self.normalize_from_demos:
+        cloning = self.demo_kwargs["demo_path"] is not None
+        demonstrations = self._load_demonstrations() if cloning and self.env is not None else None
+        if demonstrations is not None and self.demo_kwargs["normalize_from_demos"]:
             self._normalize_like(demonstrations)
         if self._vec_normalize_env is not None and self.low_normalizer is None:
             self.low_normalizer = SubgoalNormalizer(self.subgoal_space)
@@ -378,9 +368,9 @@ class HierarchicalAlgorithm(CheckedLoading):
         """``vec_normalize``, or the error ``normalize_from_demos`` gives for an env without observation statistics."""
         if vec_normalize is None or not vec_normalize.norm_obs:
             raise ValueError(
-                "normalize_from_demos=True sets the observation statistics of the env's VecNormalize, but the env is "
-                "not wrapped in VecNormalize(norm_obs=True): wrap it (the zoo's normalize: true) or set "
-                "normalize_from_demos=False"
+                "demo_kwargs['normalize_from_demos']=True sets the observation statistics of the env's VecNormalize, "
+                "but the env is not wrapped in VecNormalize(norm_obs=True): wrap it (the zoo's normalize: true) or "
+                "leave normalize_from_demos out of demo_kwargs"
             )
         return vec_normalize
 
@@ -415,10 +405,10 @@ class HierarchicalAlgorithm(CheckedLoading):
             replay_buffer_kwargs=dict(self.replay_buffer_kwargs),
             policy_kwargs=dict(self.low_policy_kwargs),
             device=self.device,
-            demo_share=self.demo_share,
-            bc_coef=self.bc_coef,
-            rl_coef=self.rl_coef,
-            q_filter=self.q_filter,
+            demo_share=self.demo_kwargs["demo_share"],
+            bc_coef=self.demo_kwargs["bc_coef"],
+            rl_coef=self.demo_kwargs["rl_coef"],
+            q_filter=self.demo_kwargs["q_filter"],
             **self.low_level_kwargs,
         )
         self.lower._n_updates = self._lower_n_updates
@@ -429,8 +419,9 @@ class HierarchicalAlgorithm(CheckedLoading):
 
     def _load_demonstrations(self) -> Demonstrations:
         """The first ``n_demos`` episodes of ``demo_path``, checked against the env's spaces."""
-        assert self.env is not None and self.demo_path is not None
-        demonstrations = demonstrations_for(self.demo_path, self.env, self.n_demos)
+        demo_path = self.demo_kwargs["demo_path"]
+        assert self.env is not None and demo_path is not None
+        demonstrations = demonstrations_for(demo_path, self.env, self.demo_kwargs["n_demos"])
         # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
         demonstrations.check_spaces(self.observation_space, self.action_space)
         return demonstrations
@@ -739,7 +730,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         option layer moves to ``env``.
         """
         # Refused before anything changes.
-        if self.normalize_from_demos:
+        if self.demo_kwargs["normalize_from_demos"]:
             self._normalizable(unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None)
         env = self._wrap_env(env, self.verbose)
         self._check_env_subgoal_space(env)
@@ -748,7 +739,7 @@ class HierarchicalAlgorithm(CheckedLoading):
             self._rebuild_keeping_parameters()
         else:
             assert self.env is not None and self.subgoal_space is not None
-            if self.normalize_from_demos:
+            if self.demo_kwargs["normalize_from_demos"]:
                 self._normalize_like(self._load_demonstrations())
             self.option_env = OptionVecEnv(
                 self.env, self.subgoal_space, self.option_steps, self.option_env.low_level, sink=self.option_env.sink

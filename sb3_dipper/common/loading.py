@@ -17,6 +17,8 @@
 * refuses an env whose time limit differs from the episode length the model's buffers were sized for
   (``max_episode_steps``), at ``load`` and at ``set_env``: trajectories would be cut into pieces without a word.
   ``load(path, env=env, max_episode_steps=N)`` rebuilds the model for the env's N-step episodes;
+* takes the constructor parameters a class has deprecated (moved into a dict parameter, its ``deprecated_parameters``)
+  at construction and at ``load``, and loads files saved before they moved (:mod:`sb3_dipper.common.deprecation`);
 * rebuilds a model around its trained parameters (:meth:`CheckedLoading._rebuild_keeping_parameters`), with which
   ``set_env`` turns a model loaded without an env (predict-only buffers) into one that trains with its configured
   buffers, so SB3's ``model = X.load(path); model.set_env(env); model.learn(n, reset_num_timesteps=False)`` works.
@@ -30,7 +32,8 @@ import json
 import pathlib
 import pickletools
 import zipfile
-from typing import Any, TypeVar
+from collections.abc import Mapping
+from typing import Any, ClassVar, TypeVar
 
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -40,6 +43,13 @@ from stable_baselines3.common.save_util import open_path, recursive_getattr, rec
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dipper.common.deprecation import (
+    DeprecatedAttribute,
+    MovedParameter,
+    fold_saved_parameters,
+    move_deprecated_parameters,
+    taking_deprecated_parameters,
+)
 from sb3_dipper.common.files import save_model_atomically
 from sb3_dipper.common.validation import InvalidSetting, as_int, check_keyword_arguments, constructor_parameters
 
@@ -252,6 +262,20 @@ class CheckedLoading(BaseAlgorithm):
     saved_by: str
     # The episode length the model's buffers are sized for, also read from a saved file (None: sized by no episodes).
     max_episode_steps: int | None = None
+    # Constructor parameters that moved into a dict parameter, by their old names (:mod:`sb3_dipper.common.deprecation`).
+    deprecated_parameters: ClassVar[Mapping[str, MovedParameter]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Let the class's constructor take its deprecated parameters (out of its signature), and give its models their
+        old attributes, which warn."""
+        super().__init_subclass__(**kwargs)
+        if "__init__" in vars(cls):
+            cls.__init__ = taking_deprecated_parameters(vars(cls)["__init__"])  # type: ignore[method-assign]
+        for name, moved in vars(cls).get("deprecated_parameters", {}).items():
+            if name not in vars(cls):
+                attribute = DeprecatedAttribute.of(moved)
+                attribute.__set_name__(cls, name)
+                setattr(cls, name, attribute)
 
     def __new__(cls, *args: Any, **kwargs: Any) -> Any:
         """Refuse a misspelt keyword with a "did you mean" (:func:`~sb3_dipper.common.validation.check_keyword_arguments`).
@@ -271,6 +295,7 @@ class CheckedLoading(BaseAlgorithm):
         ``_setup_model``: the constructor builds its model there, and so does ``load``, after it has set the
         settings read from the file (and those given to ``load``), so the one set of checks covers both.
         """
+        fold_saved_parameters(self, self.deprecated_parameters)
         # SB3's BaseAlgorithm keeps this setting under a private name.
         self._stats_window_size = as_int("stats_window_size", self._stats_window_size, 1)
 
@@ -296,7 +321,8 @@ class CheckedLoading(BaseAlgorithm):
     ) -> SelfCheckedLoading:
         """SB3's ``load``; refuses a file another algorithm saved, a setting the constructor would refuse (from the file or
         given here), and an env whose time limit is not the model's episode length (pass ``max_episode_steps=`` the
-        env's limit to rebuild the model for the env's episodes).
+        env's limit to rebuild the model for the env's episodes). A dict parameter given here that holds deprecated
+        parameters (``demo_kwargs``) replaces the saved one's keys, not the whole dict.
         """
         fields = saved_data_fields(path)
         saved_by = fields.get("saved_by")
@@ -306,6 +332,7 @@ class CheckedLoading(BaseAlgorithm):
         # parameter, with an AssertionError or a KeyError.
         if saved_by is None and fields and (error := _other_librarys_file(cls, path, fields)) is not None:
             raise error
+        kwargs = cls._with_deprecated_parameters_moved(fields, kwargs)
         for name in constructor_parameters(cls):
             if name.endswith("ent_coef") and name in kwargs and name in fields:
                 check_entropy_coefficient(name, fields[name], kwargs[name], f"{cls.__name__}.load({path}, ...)")
@@ -329,6 +356,18 @@ class CheckedLoading(BaseAlgorithm):
                 "or the file is damaged. Load an earlier checkpoint of the run."
             )
         return model  # type: ignore[return-value]
+
+    @classmethod
+    def _with_deprecated_parameters_moved(cls, fields: dict[str, Any], kwargs: dict[str, Any]) -> dict[str, Any]:
+        """``load``'s keywords with the deprecated parameters moved into their groups (with a warning), each group given
+        on top of the saved one: ``load(path, bc_coef=0.01)`` changes that key only."""
+        kwargs = move_deprecated_parameters(cls.__name__, cls.deprecated_parameters, kwargs)
+        for group in {moved.group for moved in cls.deprecated_parameters.values()} & kwargs.keys():
+            saved = fields.get(group)
+            # A group holding objects that are no JSON was pickled whole; it is replaced, as SB3 replaces any setting.
+            if isinstance(saved, dict) and ":serialized:" not in saved:
+                kwargs[group] = {**saved, **(kwargs[group] or {})}
+        return kwargs
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""

@@ -12,6 +12,8 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_dipper.common.deprecation import MovedParameter, replacement_text
+
 GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 
 
@@ -68,7 +70,8 @@ def check_keyword_arguments(algorithm: type, kwargs: Mapping[str, Any], source: 
 
     Hyperparameters reach the constructors as keywords from code, the zoo's YAML files and ``-params``, and Optuna; a
     misspelt one (``option_step``) would be Python's bare ``TypeError``. This is the same ``TypeError``, naming the
-    class and the parameter it was most likely meant to be (``difflib``).
+    class and the parameter it was most likely meant to be (``difflib``). The class's deprecated parameters
+    (``deprecated_parameters``, :mod:`sb3_dipper.common.deprecation`) are taken; one misspelt is named by its new form.
 
     :param algorithm: the class about to be built
     :param kwargs: its keyword arguments
@@ -78,10 +81,16 @@ def check_keyword_arguments(algorithm: type, kwargs: Mapping[str, Any], source: 
     if any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters.values()):
         return
     keywords = [name for name, parameter in parameters.items() if parameter.kind is not inspect.Parameter.POSITIONAL_ONLY]
+    deprecated: Mapping[str, MovedParameter] = getattr(algorithm, "deprecated_parameters", {})
     for name in kwargs:
-        if name not in keywords:
-            close = difflib.get_close_matches(name, keywords, n=1)
-            hint = f"did you mean {close[0]!r}?" if close else f"see help({algorithm.__name__}) for its parameters"
+        if name not in keywords and name not in deprecated:
+            close = difflib.get_close_matches(name, [*keywords, *deprecated], n=1)
+            if not close:
+                hint = f"see help({algorithm.__name__}) for its parameters"
+            elif close[0] in deprecated:
+                hint = f"did you mean {replacement_text(deprecated[close[0]])}?"
+            else:
+                hint = f"did you mean {close[0]!r}?"
             origin = f" (from {source})" if source else ""
             raise TypeError(f"{algorithm.__name__} got an unexpected keyword argument {name!r}{origin}; {hint}")
 

@@ -8,8 +8,7 @@ authors' PIPER code (https://github.com/Utsavz/piper), from which the preference
 from __future__ import annotations
 
 import copy
-import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -18,6 +17,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
 
+from sb3_dipper.common.deprecation import DeprecatedAttribute, MovedParameter
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
 from sb3_dipper.common.losses import (
     at_real_steps,
@@ -55,63 +55,6 @@ SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
 REFERENCE_POLICIES = ("uniform", "averaged")
-# DIPPER's planning parameters before planner_kwargs, each with the planner_kwargs key (SubgoalPlanner parameter) it is.
-DEPRECATED_PLANNING_PARAMETERS = {
-    "planning": "mode",
-    "plan_in_predict": "in_predict",
-    "planning_lookahead": "lookahead",
-    "planning_resolution": "resolution",
-    "planning_value_threshold": "value_threshold",
-}
-
-
-def planner_kwargs_with(planner_kwargs: dict[str, Any] | None, deprecated: dict[str, Any]) -> dict[str, Any]:
-    """``planner_kwargs`` with the deprecated planning parameters that were given (not ``None``) in place of their keys,
-    with a ``DeprecationWarning`` naming ``planner_kwargs``.
-
-    :param planner_kwargs: DIPPER's ``planner_kwargs``
-    :param deprecated: the deprecated parameters by name (:data:`DEPRECATED_PLANNING_PARAMETERS`), ``None`` where not given
-    """
-    kwargs = dict(planner_kwargs or {})
-    given = {name: value for name, value in deprecated.items() if value is not None}
-    if given:
-        replacement = {DEPRECATED_PLANNING_PARAMETERS[name]: value for name, value in given.items()}
-        warnings.warn(
-            f"DIPPER's {', '.join(given)} {'is' if len(given) == 1 else 'are'} deprecated: pass "
-            f"planner_kwargs={replacement!r} instead (the keys of sb3_dipper.common.planning.SubgoalPlanner)",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        kwargs.update(replacement)
-    return kwargs
-
-
-class _PlannerSetting:
-    """A DIPPER attribute that the planner holds now (``model.planner``); reading or setting it warns.
-
-    :param planner_attribute: the planner's attribute
-    """
-
-    def __init__(self, planner_attribute: str) -> None:
-        self.planner_attribute = planner_attribute
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
-
-    def _warn(self) -> None:
-        warnings.warn(
-            f"DIPPER.{self.name} is deprecated: use model.planner.{self.planner_attribute}", DeprecationWarning, stacklevel=3
-        )
-
-    def __get__(self, model: DIPPER | None, owner: type | None = None) -> Any:
-        if model is None:
-            return self
-        self._warn()
-        return getattr(model.planner, self.planner_attribute)
-
-    def __set__(self, model: DIPPER, value: Any) -> None:
-        self._warn()
-        setattr(model.planner, self.planner_attribute, value)
 
 
 class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
@@ -168,12 +111,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`), and only there does its waypoint
         replace the policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's
         (random subgoals excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs'
-        last subgoal was the planner's
-    :param planning: deprecated, ``planner_kwargs`` ``mode``
-    :param plan_in_predict: deprecated, ``planner_kwargs`` ``in_predict``
-    :param planning_lookahead: deprecated, ``planner_kwargs`` ``lookahead``
-    :param planning_resolution: deprecated, ``planner_kwargs`` ``resolution``
-    :param planning_value_threshold: deprecated, ``planner_kwargs`` ``value_threshold``
+        last subgoal was the planner's. Its keys were parameters of their own before (``planning``, ``plan_in_predict``,
+        ``planning_lookahead``, ``planning_resolution``, ``planning_value_threshold``), still taken, deprecated
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
     :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
         ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
@@ -190,18 +129,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     :param low_learning_rate: lower-level learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
     :param low_level_kwargs: other lower ``SAC`` kwargs
-    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
-        ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
-        its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
-        one of ``"auto"``, the first episode of a file or dataset)
-    :param demo_share: fraction of each lower batch drawn from the demonstrations
-    :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
-    :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
-    :param q_filter: clone only demo actions the lower critic values above the policy's
-    :param normalize_from_demos: scale observations by the demonstrations' states, fixed, instead of the
-        ``VecNormalize`` running statistics (beyond the paper; needs ``demo_path`` and ``VecNormalize``; see
-        :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
+    :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
+        (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
+        ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example
+        ``dict(demo_path="auto", bc_coef=0.02)``; each key is also taken as a parameter of its own, deprecated
     :param greedy_episode_prob: probability that an env's training episode is collected with the lower level acting
         greedily (its deterministic action) while the higher level explores (beyond the paper; 0: off)
     :param max_episode_steps: base episode length (default: the env's time limit)
@@ -218,12 +149,21 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     policy: DIPPERPolicy
     # Saved with the model (load() restores it before _setup_model), with its graph, so that a loaded model plans as it did.
     planner: SubgoalPlanner
-    planning = _PlannerSetting("mode")
-    plan_in_predict = _PlannerSetting("in_predict")
-    planning_lookahead = _PlannerSetting("lookahead")
-    planning_resolution = _PlannerSetting("resolution")
-    planning_value_threshold = _PlannerSetting("value_threshold")
-    subgoal_graph = _PlannerSetting("graph")
+    # The planner's settings were parameters of their own; None stood for the planner's default.
+    deprecated_parameters: ClassVar[Mapping[str, MovedParameter]] = {
+        **HierarchicalAlgorithm.deprecated_parameters,
+        **{
+            name: MovedParameter("planner_kwargs", key, holder="planner", none_is_unset=True)
+            for name, key in (
+                ("planning", "mode"),
+                ("plan_in_predict", "in_predict"),
+                ("planning_lookahead", "lookahead"),
+                ("planning_resolution", "resolution"),
+                ("planning_value_threshold", "value_threshold"),
+            )
+        },
+    }
+    subgoal_graph = DeprecatedAttribute("planner", "graph")
     # The lower update count when the lower critic was last copied into the snapshot V^L_m (saved with the model, as
     # the snapshot is), so that a loaded model refreshes the snapshot on the schedule it had.
     _value_snapshot_updates: int = 0
@@ -252,11 +192,6 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         hindsight_actions: bool = False,
         truncate_at_goal: bool = False,
         planner_kwargs: dict[str, Any] | None = None,
-        planning: str | None = None,
-        plan_in_predict: bool | None = None,
-        planning_lookahead: int | None = None,
-        planning_resolution: float | None = None,
-        planning_value_threshold: float | None = None,
         trajectory_buffer_size: int = 5000,
         preference_source: PreferenceSourceSpec = None,
         buffer_size: int = 1_000_000,
@@ -271,13 +206,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         low_learning_rate: float | Schedule = 1e-3,
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
-        demo_path: str | None = None,
-        n_demos: int | None = None,
-        demo_share: float = 0.125,
-        bc_coef: float = 0.0078,
-        rl_coef: float = 1e-3,
-        q_filter: bool = True,
-        normalize_from_demos: bool = False,
+        demo_kwargs: dict[str, Any] | None = None,
         greedy_episode_prob: float = 0.0,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -307,13 +236,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             low_policy_kwargs=low_policy_kwargs,
             low_level_kwargs=low_level_kwargs,
             random_subgoal_prob=random_subgoal_prob,
-            demo_path=demo_path,
-            n_demos=n_demos,
-            demo_share=demo_share,
-            bc_coef=bc_coef,
-            rl_coef=rl_coef,
-            q_filter=q_filter,
-            normalize_from_demos=normalize_from_demos,
+            demo_kwargs=demo_kwargs,
             greedy_episode_prob=greedy_episode_prob,
             max_episode_steps=max_episode_steps,
             policy_kwargs=policy_kwargs,
@@ -322,16 +245,6 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             verbose=verbose,
             seed=seed,
             device=device,
-        )
-        planner_kwargs = planner_kwargs_with(
-            planner_kwargs,
-            dict(
-                planning=planning,
-                plan_in_predict=plan_in_predict,
-                planning_lookahead=planning_lookahead,
-                planning_resolution=planning_resolution,
-                planning_value_threshold=planning_value_threshold,
-            ),
         )
         self.beta = beta
         self.value_reg_coef = value_reg_coef
@@ -348,7 +261,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.reference = reference
         self.hindsight_actions = hindsight_actions
         self.truncate_at_goal = truncate_at_goal
-        self.planner_kwargs = planner_kwargs
+        self.planner_kwargs = dict(planner_kwargs or {})
         self.trajectory_buffer_size = trajectory_buffer_size
         self.preference_source = preference_source
         if _init_setup_model:
@@ -413,20 +326,20 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _check_planner(self) -> None:
         """Build :attr:`planner` from ``planner_kwargs``, checked as the constructor checks them. A loaded model's planner
-        keeps its graph, and ``planner_kwargs`` given to ``load`` replace its keys; so do the planning attributes of a
-        model saved before ``planner_kwargs`` (or given to ``load`` by their deprecated names)."""
-        legacy_names = (*DEPRECATED_PLANNING_PARAMETERS, "subgoal_graph", "_trajectories_since_graph")
+        keeps its graph, and ``planner_kwargs`` given to ``load`` replace its keys. A model saved before
+        ``planner_kwargs`` has its planning settings in ``planner_kwargs`` by now (``_check_settings``), and its graph
+        as an attribute of its own."""
+        legacy_names = ("subgoal_graph", "_trajectories_since_graph")
         legacy = {name: self.__dict__.pop(name) for name in legacy_names if name in self.__dict__}
         loaded: SubgoalPlanner | None = self.__dict__.get("planner")
-        settings = {**(loaded.settings if loaded is not None else {}), **self.planner_kwargs}
-        settings.update({key: legacy[name] for name, key in DEPRECATED_PLANNING_PARAMETERS.items() if name in legacy})
+        settings = {**(loaded.settings if loaded is not None else {}), **(self.planner_kwargs or {})}
         check_keyword_arguments(SubgoalPlanner, settings, source="planner_kwargs")
         try:
             planner = SubgoalPlanner(**settings)
         except ValueError as error:
             raise InvalidSetting("planner_kwargs", str(error)) from error
         planner.graph = legacy.get("subgoal_graph", loaded.graph if loaded is not None else None)
-        if loaded is not None or legacy:
+        if loaded is not None:
             self.planner_kwargs = settings
         self.planner = planner
 

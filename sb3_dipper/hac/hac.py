@@ -222,18 +222,10 @@ class HAC(HIER):
     :param low_learning_rate: lower learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
     :param low_level_kwargs: other lower ``SAC`` kwargs
-    :param demo_path: demonstrations for the lower level's Q-filtered behaviour cloning (npz file, Minari directory,
-        ``"auto"`` for the task's single default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of
-        its scripted expert, beyond the paper; ``None``: none)
-    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
-        one of ``"auto"``, the first episode of a file or dataset)
-    :param demo_share: fraction of each lower batch drawn from the demonstrations
-    :param bc_coef: behaviour-cloning weight (PIPER's lambda_2)
-    :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
-    :param q_filter: clone only demo actions the lower critic values above the policy's
-    :param normalize_from_demos: scale observations by the demonstrations' states, fixed, instead of the
-        ``VecNormalize`` running statistics (beyond the paper; needs ``demo_path`` and ``VecNormalize``; see
-        :func:`~sb3_dipper.common.demonstrations.normalize_like_demonstrations`)
+    :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
+        (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
+        ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example
+        ``dict(demo_path="auto", bc_coef=0.02)``; each key is also taken as a parameter of its own, deprecated
     :param max_episode_steps: base episode length (default: the env's time limit)
     :param policy_kwargs: higher SAC ``policy_kwargs``
     :param stats_window_size: window of rollout statistics
@@ -277,13 +269,7 @@ class HAC(HIER):
         low_learning_rate: float | Schedule = 1e-3,
         low_policy_kwargs: dict[str, Any] | None = None,
         low_level_kwargs: dict[str, Any] | None = None,
-        demo_path: str | None = None,
-        n_demos: int | None = None,
-        demo_share: float = 0.125,
-        bc_coef: float = 0.0078,
-        rl_coef: float = 1e-3,
-        q_filter: bool = True,
-        normalize_from_demos: bool = False,
+        demo_kwargs: dict[str, Any] | None = None,
         max_episode_steps: int | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
@@ -318,13 +304,7 @@ class HAC(HIER):
             low_learning_rate=low_learning_rate,
             low_policy_kwargs=low_policy_kwargs,
             low_level_kwargs=low_level_kwargs,
-            demo_path=demo_path,
-            n_demos=n_demos,
-            demo_share=demo_share,
-            bc_coef=bc_coef,
-            rl_coef=rl_coef,
-            q_filter=q_filter,
-            normalize_from_demos=normalize_from_demos,
+            demo_kwargs=demo_kwargs,
             max_episode_steps=max_episode_steps,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,

@@ -26,7 +26,9 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 
+from sb3_dipper.common.deprecation import in_new_form
 from sb3_dipper.common.files import read_npz, write_bytes_atomically
+from sb3_dipper.zoo.algorithms import ZOO_ALGORITHMS
 from sb3_dipper.zoo.run_config import CONFIG_FILE, as_recorded, recorded_hyperparameters
 
 STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv
@@ -170,7 +172,11 @@ def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mappin
             f"{config} is missing: rl-zoo3 writes the hyperparameters a run starts with there, and --resume checks the "
             "ones given against them. Restore it from a copy of the run folder, or start a new run (without --resume)."
         ) from None
-    differing = differing_hyperparameters(started, as_recorded(given))
+    # A run started with the lower level's bc_coef: 0.02 resumes with demo_kwargs: {bc_coef: 0.02}, the same setting.
+    started, wanted = (
+        in_new_form(hyperparameters, ZOO_ALGORITHMS.values()) for hyperparameters in (started, as_recorded(given))
+    )
+    differing = differing_hyperparameters(started, wanted)
     if not differing:
         return
     lines = "\n".join(

@@ -150,7 +150,9 @@ def variant_overrides(algo: str, env_id: str, changes: dict[str, Any]) -> dict[s
     ``net_arch``), so a variant changes only what it names; a variant of a lower level's keywords
     (``low_policy_kwargs``, ``bc_coef``) is skipped for SAC+HER, which has none.
     """
+    # Deprecated keywords too (bc_coef: demo_kwargs["bc_coef"]), which the constructors still take.
     keywords = set(inspect.signature(ALGORITHMS[algo]).parameters) | set(ZOO_KEYS)
+    keywords |= set(getattr(ALGORITHMS[algo], "deprecated_parameters", {}))
     if not set(changes) <= keywords:
         return None
     entry = load_entry(algo, env_id)

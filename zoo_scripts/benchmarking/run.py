@@ -40,7 +40,20 @@ CPU_TASKS = [
     "FetchFourRoomMaze-v0",
 ]
 # The paper's comparison (its DIPPER, DIPPER-No-V and baselines, SAC+HER as FLAT) plus this package's DIPPER.
-PAPER_ALGORITHMS = ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "raps", "piper", "saga", "dac", "dpo_flat", "sac", "sac_demo"]
+PAPER_ALGORITHMS = [
+    "dipper",
+    "dipper_paper",
+    "dipper_nov",
+    "hier",
+    "hac",
+    "raps",
+    "piper",
+    "saga",
+    "dac",
+    "dpo_flat",
+    "sac",
+    "sac_demo",
+]
 LEARNING_DEFAULTS: dict[str, Any] = dict(
     envs=[POINT_MAZE], algos=["dipper", "hier", "sac"], seeds=[0, 1, 2], n_timesteps=None, eval_freq=20_000, eval_episodes=50
 )

@@ -50,7 +50,7 @@ CPU_PROFILE = dict(
     batch_size=256,
     low_policy_kwargs=dict(net_arch=[64, 64]),
     policy_kwargs=dict(net_arch=[256, 256]),
-    demo_path=None,
+    demo_kwargs={},  # no demonstrations: the env steps are measured, not the cloning
 )
 
 
