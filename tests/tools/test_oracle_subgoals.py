@@ -18,7 +18,7 @@ from tests.conftest import tiny_model
 from zoo_scripts.configs import trained_run
 from zoo_scripts.oracle_subgoals import oracle_subgoals, run_episodes
 
-SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "oracle_subgoals.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "oracle_subgoals.py"
 
 ENV_ID = "FetchPickAndPlaceFixed-v0"
 

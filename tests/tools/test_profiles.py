@@ -13,9 +13,9 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.zoo import ZOO_ALGORITHMS, hyperparams_dir
-from tests.test_zoo import PAPER_TASKS
+from tests.tools.test_zoo import PAPER_TASKS
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "zoo_scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "zoo_scripts"))
 from configs import load_entry, make_model
 
 PAPER_DIR = hyperparams_dir() / "paper"
