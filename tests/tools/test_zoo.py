@@ -207,7 +207,11 @@ def test_train_on_an_upstream_goal_env_without_an_entry_of_its_own(tmp_path):
     assert (run_dir / "FetchReach-v4.zip").exists() and (run_dir / "progress.csv").exists()
 
 
-@pytest.mark.parametrize("algo", sorted(TINY_PARAMS))
+# DIPPER's pair runs by default; the other algorithms' (~12 s each) under `make test-slow`: in-process, tests/test_run.py
+# and tests/test_save_load.py train, save, load and predict every algorithm.
+@pytest.mark.parametrize(
+    "algo", [algo if algo == "dipper" else pytest.param(algo, marks=pytest.mark.slow) for algo in sorted(TINY_PARAMS)]
+)
 def test_train_then_enjoy_in_subprocesses(algo, tmp_path):
     trained = zoo(
         "train", "--algo", algo, "--env", ENV_ID, "-n", "300", "--seed", "0", "-f", "logs", "--eval-freq", "-1",
