@@ -51,7 +51,8 @@ docs: $(DOCS_STAMP)
 	$(PY) -m sphinx -W --keep-going -q -b html -d docs/_build/doctrees docs docs/_build/html
 
 # docs/_static/screenshots/: the README and the labelling page at 1280 px wide, in the system's headless Chromium (which
-# the test install brings); markdown renders the README. tests/test_screenshots.py fails until they show the sources.
+# the test install brings); markdown renders the README. tests/tools/test_screenshots.py fails until they show the
+# sources.
 screenshots: $(TEST_STAMP) $(DOCS_STAMP)
 	$(PY) zoo_scripts/screenshots.py
 

@@ -72,7 +72,7 @@ setup(
             # tests/test_labelling.py: the labelling page, driven in the system's headless Chromium.
             "flask>=3",
             "selenium>=4.20",
-            # tests/test_docs.py builds a page with the docs' math extensions.
+            # tests/tools/test_docs.py builds a page with the docs' math extensions.
             "sphinx>=7,<10",
             "sphinx-mathjax-offline>=0.0.2",
         ],

@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 # Headless MuJoCo rendering; set before mujoco is imported anywhere.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -11,6 +12,9 @@ import sb3_dipper
 from stable_baselines3 import HerReplayBuffer
 
 from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat, SACDemo
+from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
+
+TOOLS_DIR = Path(__file__).resolve().parent / "tools"
 
 # One thread: tests run tiny networks, where more threads only add overhead and timing noise.
 th.set_num_threads(1)
@@ -56,6 +60,8 @@ def tiny_model(model_class, env, policy="MultiInputPolicy", **overrides):
 # Every algorithm of the package. RAPS has no learned lower level and DAC, DPOFlat, SACDemo are flat, so their tiny
 # models are built here rather than through `tiny_model`. SACDemo's clones the task's single demonstration.
 ALL_ALGORITHMS = [*HIERARCHICAL_ALGORITHMS, RAPS, DAC, DPOFlat, SACDemo]
+# Algorithms with an option layer (RAPS's lower level is scripted); DAC, DPOFlat and SACDemo act with one primitive step each.
+OPTION_ALGORITHMS = [model_class for model_class in ALL_ALGORITHMS if issubclass(model_class, HierarchicalAlgorithm)]
 OTHER_TINY_MODELS = {
     RAPS: dict(option_steps=5, high_batch_size=16, high_buffer_size=1000),
     DAC: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, discriminator_net_arch=[16]),
@@ -64,13 +70,13 @@ OTHER_TINY_MODELS = {
 }
 
 
-def any_tiny_model(model_class, env, **overrides):
+def any_tiny_model(model_class, env, policy="MultiInputPolicy", **overrides):
     """A test-sized model of any algorithm of the package."""
     if model_class in TINY_KWARGS:
-        return tiny_model(model_class, env, **overrides)
+        return tiny_model(model_class, env, policy, **overrides)
     kwargs = dict(learning_starts=40, policy_kwargs=dict(net_arch=[16]), seed=0, **OTHER_TINY_MODELS[model_class])
     kwargs.update(overrides)
-    return model_class("MultiInputPolicy", env, **kwargs)
+    return model_class(policy, env, **kwargs)
 
 
 def short_maze(n_envs: int = 1, seed: int = 0, **kwargs):
@@ -84,4 +90,30 @@ def maze_env():
     env.close()
 
 
-__all__ = ["ALL_ALGORITHMS", "HIERARCHICAL_ALGORITHMS", "any_tiny_model", "sb3_dipper", "short_maze", "tiny_model"]
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Marks the tests of tests/tools/ ``tools``, and leaves ``slow`` tests out unless ``-m`` names ``slow``.
+
+    ``slow`` is opt-in here rather than through ``addopts = -m 'not slow'``, which any ``-m`` given on the command line
+    replaces: ``pytest tests -m "not tools"`` runs the library's tests without the slow ones too.
+    """
+    for item in items:
+        if TOOLS_DIR in item.path.parents:
+            item.add_marker(pytest.mark.tools)
+    if "slow" in config.getoption("markexpr"):
+        return
+    kept = [item for item in items if item.get_closest_marker("slow") is None]
+    if len(kept) < len(items):
+        config.hook.pytest_deselected(items=[item for item in items if item.get_closest_marker("slow") is not None])
+        items[:] = kept
+
+
+__all__ = [
+    "ALL_ALGORITHMS",
+    "HIERARCHICAL_ALGORITHMS",
+    "OPTION_ALGORITHMS",
+    "any_tiny_model",
+    "sb3_dipper",
+    "short_maze",
+    "tiny_model",
+]

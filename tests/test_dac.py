@@ -1,4 +1,5 @@
-"""DAC: the discriminator's losses, reward and absorbing states by hand; runs, saving, errors; a learning check."""
+"""DAC: the discriminator's losses, reward and absorbing states by hand; its variants, errors; learning checks (its runs,
+saving and seeding: tests/test_run.py, tests/test_save_load.py)."""
 
 import math
 
@@ -6,7 +7,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from gymnasium import spaces
 from stable_baselines3 import HerReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
@@ -207,34 +207,9 @@ def test_expert_goals_are_relabelled_as_often_as_the_replay_buffer_relabels(
 # ---------------------------------------------------------------------------------------------------- runs and saving
 
 
-def test_learn_predict_log_and_reload_without_env(tmp_path):
-    env = short_maze()
-    model = DAC("MlpPolicy", env, **TINY)
-    model.set_logger(configure(str(tmp_path), ["csv"]))
-    model.learn(200, log_interval=1, progress_bar=True)
-    header = open(tmp_path / "progress.csv").readline().strip().split(",")
-    expected = {"rollout/success_rate", "time/fps", "train/actor_loss", "train/critic_loss", "train/disc_loss"}
-    expected |= {"train/disc_expert_accuracy", "train/disc_policy_accuracy", "train/gradient_penalty", "train/disc_reward"}
-    assert expected <= set(header)
-    # The networks see the absorbing indicator; the env (and the saved spaces) do not.
+def test_the_networks_see_the_absorbing_indicator_and_the_env_does_not():
+    model = DAC("MultiInputPolicy", short_maze(), **TINY)
     assert ABSORBING_KEY in model.policy.observation_space.spaces and ABSORBING_KEY not in model.observation_space.spaces
-    action, _ = model.predict(env.reset(), deterministic=True)
-    assert action.shape == (1, 2)
-
-    model.save(tmp_path / "dac")
-    model.save_replay_buffer(tmp_path / "buffer.pkl")
-    loaded = DAC.load(tmp_path / "dac", env=None)
-    # A predict-only load allocates no training data.
-    assert loaded.replay_buffer.buffer_size == 1 and len(loaded.absorbing_transitions.observations["observation"]) == 1
-    np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
-    # SB3's recipe resumes it: set_env gives it training buffers of the configured size.
-    loaded.set_env(short_maze())
-    loaded.learn(10, reset_num_timesteps=False)
-    assert loaded.replay_buffer.buffer_size == model.replay_buffer.buffer_size
-    resumed = DAC.load(tmp_path / "dac", env=short_maze(seed=1))
-    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
-    resumed.learn(50, reset_num_timesteps=False)
-    assert resumed.num_timesteps == 250
 
 
 def test_paper_compat_is_the_authors_least_squares_variant(tmp_path):
@@ -336,19 +311,6 @@ def test_the_critic_learns_the_discriminators_reward_not_the_envs():
     assert abs(q_values.mean().item() - math.log(4)) < 0.1 and q_values.min().item() > 1.0
 
 
-def test_same_seed_same_run():
-    def run(seed: int) -> tuple[dict[str, th.Tensor], np.ndarray]:
-        model = DAC("MultiInputPolicy", short_maze(n_envs=2, seed=2), **{**TINY, "seed": seed})
-        model.learn(150)
-        parameters = {**model.policy.state_dict(), **{f"disc.{k}": v for k, v in model.discriminator.state_dict().items()}}
-        return parameters, model.replay_buffer.actions[:100].copy()
-
-    (first, first_actions), (second, second_actions), (other, other_actions) = run(11), run(11), run(12)
-    np.testing.assert_array_equal(first_actions, second_actions)
-    assert first.keys() == second.keys() and all(th.equal(first[name], second[name]) for name in first)
-    assert not np.array_equal(first_actions, other_actions) and not all(th.equal(first[name], other[name]) for name in first)
-
-
 def demonstration_slice(n_steps: int) -> Demonstrations:
     """The first ``n_steps`` steps of the maze's default demonstration, as one episode of that length."""
     demos = default_demonstrations("PointMazeFourRooms-v0")
@@ -391,10 +353,6 @@ def test_bad_input_gives_clear_errors(tmp_path):
     wrong_actions.save(tmp_path / "actions.npz")
     with pytest.raises(ValueError, match="actions have shape"):
         DAC("MultiInputPolicy", short_maze(), demo_path=str(tmp_path / "actions.npz"))
-    with pytest.raises(ValueError, match="goal-conditioned env"):
-        DAC("MlpPolicy", "Pendulum-v1")
-    with pytest.raises(ValueError, match="no policy"):
-        DAC("CnnPolicy", short_maze())
     demos = default_demonstrations("PointMazeFourRooms-v0")
     demos.observations["observation"] = demos.observations["observation"][:, :3]
     demos.save(tmp_path / "wrong.npz")
@@ -469,10 +427,3 @@ def final_distance(model: DAC, env_kwargs: dict, n_episodes: int = 20) -> float:
             terminal = infos[0]["terminal_observation"]
             distances.append(float(np.linalg.norm(terminal["achieved_goal"] - terminal["desired_goal"])))
     return float(np.mean(distances))
-
-
-def test_unbatched_predict_and_the_action_space():
-    model = DAC("MultiInputPolicy", short_maze(), **TINY)
-    obs, _ = gym.make("PointMazeFourRooms-v0").reset(seed=0)
-    action, _ = model.predict(obs, deterministic=True)
-    assert action.shape == (2,) and spaces.Box(-1, 1, (2,)).contains(action.astype(np.float32))

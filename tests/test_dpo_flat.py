@@ -1,4 +1,5 @@
-"""DPO-FLAT: segment pairs and their labels by hand, the DPO step, runs, saving, errors and a learning check."""
+"""DPO-FLAT: segment pairs and their labels by hand, the DPO step, its episode store, the NLL term, errors and a learning
+check (its runs, saving and seeding: tests/test_run.py, tests/test_save_load.py)."""
 
 import copy
 import math
@@ -17,7 +18,6 @@ from sb3_dipper.common.preferences import PreferenceDataset, PrimitiveInTheLoopL
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.dpo_flat import DPOFlat, sample_segment_pairs
 from tests.conftest import short_maze
-from tests.test_save_load import rollout_actions
 
 TINY = dict(
     segment_length=5,
@@ -150,42 +150,7 @@ def test_one_dpo_step_by_hand():
     assert loss_by_hand() < before
 
 
-# ---------------------------------------------------------------------------------------------------- runs and saving
-
-
-def test_learn_predict_log_and_reload_without_env(tmp_path):
-    env = short_maze(n_envs=2)
-    model = DPOFlat("MlpPolicy", env, **TINY)
-    model.set_logger(configure(str(tmp_path), ["csv"]))
-    model.learn(300, log_interval=1, progress_bar=True)
-    assert model.num_timesteps == 300 and len(model.preferences) > 0 and len(model.trajectory_buffer) == 14
-    header = open(tmp_path / "progress.csv").readline().strip().split(",")
-    expected = {"rollout/success_rate", "rollout/ep_len_mean", "time/fps", "time/total_timesteps"}
-    expected |= {"train/dpo_loss", "train/preference_pairs", "train/pref_accuracy", "train/n_updates"}
-    assert expected <= set(header)
-    action, _ = model.predict(env.reset(), deterministic=True)
-    assert action.shape == (2, 2) and np.all(np.abs(action) <= 1.0)
-
-    model.save(tmp_path / "dpo_flat")
-    loaded = DPOFlat.load(tmp_path / "dpo_flat", env=None)
-    assert loaded.trajectory_buffer.capacity == 1  # a predict-only load allocates no training data
-    np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
-    # Given an env later, it learns with a store of full size.
-    loaded.set_env(short_maze(n_envs=2, seed=1))
-    loaded.learn(100)
-    assert loaded.trajectory_buffer.capacity == TINY["trajectory_buffer_size"] and len(loaded.trajectory_buffer) == 4
-
-
-def test_same_seed_same_run():
-    def run(seed: int) -> tuple[dict[str, th.Tensor], np.ndarray]:
-        model = DPOFlat("MultiInputPolicy", short_maze(n_envs=2, seed=2), **{**TINY, "seed": seed})
-        model.learn(200)
-        return {k: v.clone() for k, v in model.policy.state_dict().items()}, model.preferences.all_pairs().actions
-
-    (first, first_pairs), (second, second_pairs), (other, other_pairs) = run(11), run(11), run(12)
-    np.testing.assert_array_equal(first_pairs, second_pairs)
-    assert first.keys() == second.keys() and all(th.equal(first[name], second[name]) for name in first)
-    assert not np.array_equal(first_pairs, other_pairs) and not all(th.equal(first[name], other[name]) for name in first)
+# ----------------------------------------------------------------------------------------------- episodes, NLL term, errors
 
 
 def test_every_primitive_step_is_stored_in_its_episode():
@@ -227,12 +192,8 @@ def test_nll_term_vec_normalize_and_checkpoints(tmp_path):
 def test_bad_input_gives_clear_errors():
     with pytest.raises(ValueError, match=r"segment_length \(25\) is longer than an episode"):
         DPOFlat("MultiInputPolicy", short_maze(), segment_length=25)
-    with pytest.raises(ValueError, match="goal-conditioned env"):
-        DPOFlat("MlpPolicy", "Pendulum-v1")
     with pytest.raises(ValueError, match="random_action_prob"):
         DPOFlat("MultiInputPolicy", short_maze(), random_action_prob=1.5)
-    with pytest.raises(ValueError, match="no policy"):
-        DPOFlat("CnnPolicy", short_maze())
 
 
 # ---------------------------------------------------------------------------------------------------- learning

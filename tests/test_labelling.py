@@ -565,12 +565,14 @@ def test_the_label_queue_of_a_preference_source(spec, directory):
     assert label_queue_directory(spec) == directory
 
 
+@pytest.mark.tools
 @pytest.mark.parametrize("text", ["", "host:", "50OO", "localhost:70000", "-1"])
 def test_a_bad_label_page_address_names_the_flag(text):
     with pytest.raises(ValueError, match="--label-page takes"):
         split_run_control(["--label-page", text])
 
 
+@pytest.mark.tools
 def test_label_page_flag_parses_host_and_port():
     assert split_run_control(["--label-page", "5001", "--algo", "dipper"]) == (
         RunControl(label_page=("127.0.0.1", 5001)),
@@ -589,6 +591,7 @@ def zoo_train(tmp_path: Path, *params: str, label_page: str = "127.0.0.1:0") -> 
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
 
 
+@pytest.mark.tools
 def test_training_serves_the_labelling_page_and_uses_its_labels(tmp_path):
     """``--label-page``: the page runs inside the training process; a label given there reaches that training."""
     directory = tmp_path / "labels"
@@ -632,6 +635,7 @@ def test_training_serves_the_labelling_page_and_uses_its_labels(tmp_path):
         training.wait(timeout=30)
 
 
+@pytest.mark.tools
 def test_label_page_without_people_to_ask_is_refused_before_training(tmp_path):
     training = zoo_train(tmp_path, "n_preference_pairs:8")
     output, _ = training.communicate(timeout=300)

@@ -1,4 +1,4 @@
-"""DIPPER learns the four-room maze: a test-sized check by default, the demo's full budget under `make test-slow`.
+"""DIPPER learns the four-room maze, at 40k steps and at the demo's full budget: both under `make test-slow`.
 
 Budgets and thresholds come from measurements (BENCHMARKS.md, the fast maze): with the hyperparameters of
 hyperparams/dipper.yml, where the planner proposes where it knows a path and the preference-trained policy elsewhere,
@@ -20,6 +20,7 @@ def success_rate(model, n_episodes: int, seed: int) -> float:
     return float(np.mean(episode_successes(model, env, n_episodes)))
 
 
+@pytest.mark.slow
 def test_dipper_learns_the_far_room_within_a_test_budget():
     model, _, _ = make_model("dipper", ENV_ID, seed=0)
     model.learn(40_000)

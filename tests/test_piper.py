@@ -1,20 +1,18 @@
-"""PIPER: the Bradley-Terry reward-model loss by hand, rewards replaced by r_phi at sampling, runs, saving, learning."""
+"""PIPER: the Bradley-Terry reward-model loss by hand, rewards replaced by r_phi at sampling, its saved labels and episodes,
+PIPER-No-V, a learning check (its runs, saving and seeding: tests/test_run.py, tests/test_save_load.py)."""
 
 import math
-import os
 
 import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.logger import configure
 
 from sb3_dipper.common.preferences import sample_trajectory_pairs
 from sb3_dipper.piper import PIPER, LearnedRewardReplayBuffer
 from sb3_dipper.common.losses import preference_accuracy
 from sb3_dipper.piper.piper import bradley_terry_loss, reward_model_logits
 from tests.conftest import short_maze
-from tests.test_save_load import rollout_actions
 
 TINY_PIPER = dict(
     option_steps=5,
@@ -77,11 +75,10 @@ def test_logits_of_pairs_of_unequal_lengths():
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> PIPER:
-    """A tiny PIPER (higher-level HER on) after 200 steps, logging to csv; tests below must leave it as they found it."""
+def trained() -> PIPER:
+    """A tiny PIPER (higher-level HER on) after 200 steps; tests below must leave it as they found it."""
     model = tiny_piper(short_maze())
-    model.set_logger(configure(str(tmp_path_factory.mktemp("piper_log")), ["csv"]))
-    model.learn(200, log_interval=1)
+    model.learn(200)
     return model
 
 
@@ -142,22 +139,6 @@ def test_the_value_term_breaks_ties_of_the_primitive_in_the_loop_score(trained):
 
 
 # ---------------------------------------------------------------------------------------------------- runs and saving
-
-
-def test_learn_logs_both_levels_and_the_reward_model(trained):
-    assert len(trained.preferences) > 0
-    header = open(os.path.join(trained.logger.get_dir(), "progress.csv")).readline().strip().split(",")
-    expected = {"train/high_reward_model_loss", "train/high_reward_model_accuracy", "train/high_preference_pairs"}
-    expected |= {"train/high_actor_loss", "train/high_critic_loss", "train/low_actor_loss", "rollout/subgoal_distance"}
-    assert expected <= set(header)
-
-
-def test_save_load_without_env_predicts_the_same_actions(trained, tmp_path):
-    trained.save(tmp_path / "model")
-    loaded = PIPER.load(tmp_path / "model", env=None)
-    for name, tensor in trained.reward_model.state_dict().items():
-        assert th.equal(tensor, loaded.reward_model.state_dict()[name]), name
-    np.testing.assert_array_equal(rollout_actions(trained, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
 
 
 def test_checkpoint_with_buffers_resumes_where_it_stopped(trained_without_her, tmp_path):

@@ -192,6 +192,7 @@ def test_plan_in_predict_false_needs_the_subgoal_planner(maze_env, mode):
         tiny_model(DIPPER, maze_env, planner_kwargs=dict(mode=mode, in_predict=False))
 
 
+@pytest.mark.tools
 def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_or_three_without_a_planner(tmp_path):
     run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
     maze_env = make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=1, seed=0)  # the zoo entry's 200-step episodes
@@ -227,6 +228,7 @@ def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_
     assert pd.read_csv(tmp_path / "share.csv")["case"].tolist() == list(report)
 
 
+@pytest.mark.tools
 def test_planner_share_sampled_cases_sample_the_levels_as_training_collects(tmp_path, monkeypatch):
     """``--sampled``: both levels sample (``sampled``), or the higher level samples and the lower is greedy."""
     run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
@@ -263,6 +265,7 @@ def test_planner_share_sampled_cases_sample_the_levels_as_training_collects(tmp_
         assert set(calls["lower"]) == {lower}, case
 
 
+@pytest.mark.tools
 def test_planner_share_measures_a_baseline_three_ways_and_refuses_a_scripted_lower_level(tmp_path):
     """A HIER has no planner: as trained, with its higher policy untrained, and its lower level driven by the goal
     (which the goal case hands to the lower level as its subgoal); RAPS has no learned lower level to measure."""

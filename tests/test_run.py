@@ -1,4 +1,5 @@
-"""Every hierarchical algorithm runs, acts, logs and works with SB3's callbacks, evaluation and VecNormalize."""
+"""Every algorithm runs, acts, logs and works with SB3's callbacks, evaluation and VecNormalize (as SB3's test_run.py
+and test_predict.py). What only one algorithm does is tested in its own file (tests/test_<algorithm>.py)."""
 
 import os
 
@@ -9,29 +10,33 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
 
-from sb3_dipper import DIPPER, HIER
-from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
+from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat
+from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, OPTION_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 @pytest.mark.parametrize("policy", ["MlpPolicy", "MultiInputPolicy"])
 def test_learn_then_predict_a_primitive_action(model_class, policy, maze_env):
-    model = tiny_model(model_class, maze_env, policy=policy)
+    model = any_tiny_model(model_class, maze_env, policy=policy)
     model.learn(120)
     assert model.num_timesteps >= 120
     obs = maze_env.reset()
     action, state = model.predict(obs, deterministic=True)
     assert action.shape == (1, 2) and np.all(np.abs(action) <= 1.0)
-    subgoals, steps_left = state
-    assert subgoals.shape == (1, 2) and steps_left.tolist() == [4]
+    if model_class in OPTION_ALGORITHMS:
+        # The option's higher action (a subgoal; RAPS: a primitive's arguments and selector) and its steps left.
+        higher_actions, steps_left = state
+        assert higher_actions.shape == (1, *model.policy.action_space.shape) and steps_left.tolist() == [4]
+    else:
+        assert state is None
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_two_envs_in_subprocesses(model_class):
     env = short_maze(n_envs=2, vec_env_cls=SubprocVecEnv)
     try:
-        model = tiny_model(model_class, env)
-        model.learn(160)
+        model = any_tiny_model(model_class, env)
+        model.learn(160, progress_bar=True)
         assert model.num_timesteps == 160
         action, _ = model.predict(env.reset(), deterministic=False)
         assert action.shape == (2, 2)
@@ -39,18 +44,21 @@ def test_two_envs_in_subprocesses(model_class):
         env.close()
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_predict_on_an_unbatched_observation_and_state_handover(model_class, maze_env):
-    model = tiny_model(model_class, maze_env)
+    model = any_tiny_model(model_class, maze_env)
     env = maze_env.envs[0]
     obs, _ = env.reset(seed=3)
     action, state = model.predict(obs, deterministic=True)
-    assert action.shape == (2,)
-    subgoal = state[0].copy()
+    assert action.shape == (2,) and env.action_space.contains(action.astype(np.float32))
+    if model_class not in OPTION_ALGORITHMS:
+        assert state is None
+        return
+    higher_action = state[0].copy()
     for steps_left in (3, 2, 1, 0):
         obs, *_ = env.step(action)
         action, state = model.predict(obs, state=state, deterministic=True)
-        np.testing.assert_array_equal(state[0], subgoal)
+        np.testing.assert_array_equal(state[0], higher_action)
         assert state[1].tolist() == [steps_left]
     obs, *_ = env.step(action)
     _, state = model.predict(obs, state=state, deterministic=True)
@@ -80,7 +88,7 @@ class CountSteps(BaseCallback):
         return True
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_callbacks_run_once_per_primitive_step(model_class, tmp_path):
     env = short_maze(n_envs=2)
     counter = CountSteps()
@@ -88,13 +96,14 @@ def test_callbacks_run_once_per_primitive_step(model_class, tmp_path):
         short_maze(seed=5), n_eval_episodes=2, eval_freq=40, log_path=str(tmp_path), best_model_save_path=str(tmp_path)
     )
     checkpoint = CheckpointCallback(save_freq=50, save_path=str(tmp_path), save_replay_buffer=True)
-    model = tiny_model(model_class, env)
+    model = any_tiny_model(model_class, env)
     model.learn(200, callback=[counter, eval_callback, checkpoint], progress_bar=True)
     assert counter.n_calls == 100
     evaluations = np.load(tmp_path / "evaluations.npz")
     assert evaluations["timesteps"].tolist() == [80, 160] and evaluations["successes"].shape == (2, 2)
-    assert (tmp_path / "best_model.zip").exists()
-    assert (tmp_path / "rl_model_100_steps.zip").exists() and (tmp_path / "rl_model_replay_buffer_100_steps.pkl").exists()
+    assert (tmp_path / "best_model.zip").exists() and (tmp_path / "rl_model_100_steps.zip").exists()
+    # SB3 saves a replay buffer only where the model has one; DPO-FLAT keeps episodes, which its own files hold.
+    assert (tmp_path / "rl_model_replay_buffer_100_steps.pkl").exists() == (model_class is not DPOFlat)
 
 
 class StopAfter(BaseCallback):
@@ -106,51 +115,69 @@ class StopAfter(BaseCallback):
         return self.n_calls < self.calls
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_a_callback_can_stop_training_mid_option(model_class, maze_env):
-    model = tiny_model(model_class, maze_env)
+    model = any_tiny_model(model_class, maze_env)
     model.learn(1000, callback=StopAfter(13))
     assert model.num_timesteps == 13
     model.learn(20)  # the interrupted option leaves nothing open that breaks a new run
     assert model.num_timesteps == 20
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_evaluate_policy(model_class, maze_env):
-    model = tiny_model(model_class, maze_env)
+    model = any_tiny_model(model_class, maze_env)
     mean_reward, _ = evaluate_policy(model, short_maze(seed=9), n_eval_episodes=3, deterministic=True)
     assert -20.0 <= mean_reward <= 0.0
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_vec_normalize(model_class):
-    env = VecNormalize(short_maze(), norm_obs=True, norm_reward=False)
-    model = tiny_model(model_class, env)
+    # RAPS's primitives read positions from the observation, so it takes VecNormalize without observation normalisation
+    # (tests/test_raps.py: it refuses norm_obs=True).
+    norm_obs = model_class is not RAPS
+    env = VecNormalize(short_maze(), norm_obs=norm_obs, norm_reward=not norm_obs)
+    model = any_tiny_model(model_class, env)
     model.learn(120)
-    assert model.low_normalizer is not None and "achieved_goal" in model.low_normalizer.statistics
-    np.testing.assert_allclose(
-        model.low_normalizer.statistics["achieved_goal"][0], env.obs_rms["achieved_goal"].mean, atol=1e-6
-    )
+    if model_class in HIERARCHICAL_ALGORITHMS:
+        assert model.low_normalizer is not None and "achieved_goal" in model.low_normalizer.statistics
+        np.testing.assert_allclose(
+            model.low_normalizer.statistics["achieved_goal"][0], env.obs_rms["achieved_goal"].mean, atol=1e-6
+        )
     env.training = False
     mean_reward, _ = evaluate_policy(model, env, n_eval_episodes=2)
     assert np.isfinite(mean_reward)
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
-def test_log_keys_of_both_levels(model_class, tmp_path):
-    env = short_maze()
-    model = tiny_model(model_class, env)
+# The keys every run logs, then each algorithm's own: both levels' losses for a hierarchy (train/low_*, train/high_*).
+COMMON_LOG_KEYS = {"rollout/success_rate", "time/fps", "time/total_timesteps"}
+OPTION_LOG_KEYS = {"rollout/subgoal_distance", "rollout/low_value", "train/low_actor_loss", "train/low_critic_loss"}
+OPTION_LOG_KEYS |= {"train/low_ent_coef"}
+HIGHER_SAC_LOG_KEYS = {"train/high_actor_loss", "train/high_critic_loss"}
+LOG_KEYS = {
+    DIPPER: OPTION_LOG_KEYS | {"train/high_dpo_loss", "train/high_preference_pairs"},
+    HIER: OPTION_LOG_KEYS | HIGHER_SAC_LOG_KEYS,
+    PIPER: OPTION_LOG_KEYS
+    | HIGHER_SAC_LOG_KEYS
+    | {"train/high_reward_model_loss", "train/high_reward_model_accuracy", "train/high_preference_pairs"},
+    SAGA: OPTION_LOG_KEYS | HIGHER_SAC_LOG_KEYS | {"train/high_disc_loss", "train/high_adversarial_loss"},
+    HAC: OPTION_LOG_KEYS | HIGHER_SAC_LOG_KEYS | {"train/high_target_q", "rollout/tested_subgoal_missed"},
+    RAPS: HIGHER_SAC_LOG_KEYS,
+    DAC: {"train/actor_loss", "train/critic_loss", "train/disc_loss", "train/disc_expert_accuracy"}
+    | {"train/disc_policy_accuracy", "train/gradient_penalty", "train/disc_reward"},
+    DPOFlat: {"rollout/ep_len_mean", "train/dpo_loss", "train/preference_pairs", "train/pref_accuracy", "train/n_updates"},
+}
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_log_keys(model_class, tmp_path):
+    model = any_tiny_model(model_class, short_maze())
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(200, log_interval=1)
-    header = open(os.path.join(tmp_path, "progress.csv")).readline().strip().split(",")
-    expected = {"rollout/success_rate", "rollout/subgoal_distance", "rollout/low_value", "time/fps", "time/total_timesteps"}
-    expected |= {"train/low_actor_loss", "train/low_critic_loss", "train/low_ent_coef"}
-    if model_class is DIPPER:
-        expected |= {"train/high_dpo_loss", "train/high_preference_pairs"}
-    else:
-        expected |= {"train/high_actor_loss", "train/high_critic_loss"}
-    assert expected <= set(header)
-    assert "train/actor_loss" not in header
+    header = set(open(os.path.join(tmp_path, "progress.csv")).readline().strip().split(","))
+    assert COMMON_LOG_KEYS | LOG_KEYS[model_class] <= header
+    if model_class in OPTION_ALGORITHMS:
+        assert "train/actor_loss" not in header  # each level's losses under its own name
 
 
 @pytest.mark.parametrize(

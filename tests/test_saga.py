@@ -1,4 +1,5 @@
-"""SAGA: the discriminator and adversarial losses by hand, relabelled subgoals, the actor's extra gradient, runs, learning."""
+"""SAGA: the discriminator and adversarial losses by hand, relabelled subgoals, the actor's extra gradient, its variant
+without the state, a learning check (its runs, saving and seeding: tests/test_run.py, tests/test_save_load.py)."""
 
 import math
 import os
@@ -126,9 +127,8 @@ def test_no_adversarial_term_at_zero_weight(maze_env):
 # ---------------------------------------------------------------------------------------------------- runs and saving
 
 
-@pytest.mark.parametrize("state_conditioned", [True, False])
-def test_learn_logs_predict_and_save_load_without_env(state_conditioned, maze_env, tmp_path):
-    model = tiny_saga(maze_env, state_conditioned=state_conditioned)
+def test_a_discriminator_without_the_state_learns_logs_and_reloads(maze_env, tmp_path):
+    model = tiny_saga(maze_env, state_conditioned=False)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(200, log_interval=1)
     header = open(os.path.join(tmp_path, "progress.csv")).readline().strip().split(",")
@@ -137,23 +137,20 @@ def test_learn_logs_predict_and_save_load_without_env(state_conditioned, maze_en
 
     model.save(tmp_path / "model")
     loaded = SAGA.load(tmp_path / "model", env=None)
-    assert loaded.state_conditioned == state_conditioned
+    assert not loaded.state_conditioned
     for name, tensor in model.discriminator.state_dict().items():
         assert th.equal(tensor, loaded.discriminator.state_dict()[name]), name
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
 
 
-def test_checkpoint_with_buffers_resumes_where_it_stopped(tmp_path):
-    env = short_maze(n_envs=2)
-    model = tiny_saga(env)
-    model.learn(160)
-    model.save(tmp_path / "model")
-    model.save_replay_buffer(tmp_path / "buffer.pkl")
-    resumed = SAGA.load(tmp_path / "model", env=short_maze(n_envs=2, seed=1))
-    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
-    assert resumed.higher.replay_buffer.pos == model.higher.replay_buffer.pos > 0
-    resumed.learn(40, reset_num_timesteps=False)
-    assert resumed.num_timesteps == 200 and resumed.higher.actor_loss_term == resumed._adversarial_term
+def test_a_resumed_model_keeps_the_adversarial_term_in_its_higher_actor_step(tmp_path):
+    tiny_saga(short_maze(n_envs=2)).save(tmp_path / "model")
+    loaded_with_env = SAGA.load(tmp_path / "model", env=short_maze(n_envs=2, seed=1))
+    given_env_later = SAGA.load(tmp_path / "model")
+    given_env_later.set_env(short_maze(n_envs=2, seed=1))
+    for resumed in (loaded_with_env, given_env_later):
+        resumed.learn(60, reset_num_timesteps=False)
+        assert resumed.num_timesteps == 60 and resumed.higher.actor_loss_term == resumed._adversarial_term
 
 
 # ---------------------------------------------------------------------------------------------------- learning

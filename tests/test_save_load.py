@@ -1,11 +1,15 @@
-"""save -> load(env=None) -> predict, resuming from checkpoints, and reproducible runs."""
+"""Every algorithm: save -> load(env=None) -> predict, resuming from a checkpoint with its buffers, and reproducible runs
+(as SB3's test_save_load.py and test_deterministic.py)."""
 
 import numpy as np
 import pytest
 import torch as th
 
 from sb3_dipper import DIPPER
-from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
+from tests.conftest import ALL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
+
+# The largest replay buffer a model loaded without an env allocates (PREDICT_ONLY_BUFFER_SIZE per env).
+PREDICT_ONLY_ROWS = 16
 
 
 def rollout_actions(model, env, steps: int = 30) -> np.ndarray:
@@ -20,40 +24,78 @@ def rollout_actions(model, env, steps: int = 30) -> np.ndarray:
     return np.array(actions)
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
-def test_save_load_without_env_predicts_the_same_actions(model_class, tmp_path, maze_env):
-    model = tiny_model(model_class, maze_env)
-    model.learn(200)
-    model.save(tmp_path / "model")
-    loaded = model_class.load(tmp_path / "model", env=None)
-    assert loaded.get_env() is None
-    # A predict-only load does not allocate the training buffers.
-    assert loaded.lower.replay_buffer.buffer_size < 100
-    np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
+def assert_same_state(first, second, name: str = "parameters") -> None:
+    """``get_parameters()`` of two models are equal: every network's and optimizer's state, tensor by tensor."""
+    if isinstance(first, dict):
+        assert first.keys() == second.keys(), name
+        for key in first:
+            assert_same_state(first[key], second[key], f"{name}[{key!r}]")
+    elif isinstance(first, (list, tuple)):
+        assert len(first) == len(second), name
+        for index, (item, other) in enumerate(zip(first, second, strict=True)):
+            assert_same_state(item, other, f"{name}[{index}]")
+    elif isinstance(first, th.Tensor):
+        assert th.equal(first, second), name
+    else:
+        assert first == second, name
+
+
+def replay_buffers(model) -> dict[str, object]:
+    """Every replay buffer a model trains from, by owner: its lower and higher SAC's, or its own (DAC)."""
+    buffers = {}
+    for name in ("lower", "higher", ""):
+        owner = getattr(model, name, None) if name else model
+        buffer = getattr(owner, "replay_buffer", None)
+        if buffer is not None:
+            buffers[f"{name}.replay_buffer"] = buffer
+    return buffers
+
+
+def stored_data(model) -> dict[str, np.ndarray]:
+    """What a model collected: each replay buffer's observations and actions, its stored episodes, its labelled pairs."""
+    data = {}
+    for name, buffer in replay_buffers(model).items():
+        rows = buffer.buffer_size if buffer.full else buffer.pos
+        data[f"{name}.observations"] = buffer.observations["observation"][:rows].copy()
+        data[f"{name}.actions"] = buffer.actions[:rows].copy()
+    trajectories = getattr(model, "trajectory_buffer", None)
+    if trajectories is not None:
+        data["trajectory_buffer.actions"] = trajectories.actions[: len(trajectories)].copy()
+    preferences = getattr(model, "preferences", None)
+    if preferences is not None:
+        pairs = preferences.all_pairs() if len(preferences) > 0 else None
+        data["preferences.actions"] = pairs.actions.copy() if pairs is not None else np.zeros(0)
+        data["preferences.labels"] = pairs.labels.copy() if pairs is not None else np.zeros(0)
+    return data
+
+
+def assert_same_data(first: dict[str, np.ndarray], second: dict[str, np.ndarray]) -> None:
+    assert first.keys() == second.keys()
+    for name in first:
+        np.testing.assert_array_equal(first[name], second[name], err_msg=name)
+
+
+# ---------------------------------------------------------------------------------------------------- save, load
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
-def test_every_algorithm_saves_loads_without_env_and_predicts_the_same(model_class, tmp_path, maze_env):
+def test_save_load_without_env_predicts_the_same_actions(model_class, tmp_path, maze_env):
     model = any_tiny_model(model_class, maze_env)
     model.learn(200)
     model.save(tmp_path / "model")
     loaded = model_class.load(tmp_path / "model", env=None)
     assert loaded.get_env() is None
+    # Every network and optimizer state comes back (SAGA's discriminator, PIPER's reward model, DIPPER's snapshot...).
+    assert_same_state(model.get_parameters(), loaded.get_parameters())
+    # A predict-only load allocates no training data: small replay buffers (DPO-FLAT has none: a small episode store).
+    buffers = replay_buffers(loaded)
+    if buffers:
+        assert all(buffer.buffer_size <= PREDICT_ONLY_ROWS for buffer in buffers.values())
+    else:
+        assert loaded.trajectory_buffer.capacity == 1
+    if getattr(loaded, "absorbing_transitions", None) is not None:  # DAC
+        assert len(loaded.absorbing_transitions.observations["observation"]) == 1
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
-
-
-# The hierarchical algorithms repeat their runs in the stronger test_same_seed_same_first_thousand_steps below (both
-# levels' weights and the collected observations, over a thousand steps).
-@pytest.mark.parametrize("model_class", [model for model in ALL_ALGORITHMS if model not in HIERARCHICAL_ALGORITHMS])
-def test_the_other_algorithms_repeat_their_runs_with_the_same_seed(model_class):
-    def trained_parameters():
-        model = any_tiny_model(model_class, short_maze(seed=3), seed=3)
-        model.learn(300)
-        return {name: tensor.clone() for name, tensor in model.policy.state_dict().items()}
-
-    first, second = trained_parameters(), trained_parameters()
-    assert first.keys() == second.keys()
-    assert all(th.equal(first[name], second[name]) for name in first)
 
 
 def test_the_planning_graph_is_saved_with_the_model(tmp_path, maze_env):
@@ -66,61 +108,59 @@ def test_the_planning_graph_is_saved_with_the_model(tmp_path, maze_env):
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
-def test_loaded_model_keeps_training(model_class, tmp_path, maze_env):
-    model = tiny_model(model_class, maze_env)
-    model.learn(100)
-    model.save(tmp_path / "model")
-    loaded = model_class.load(tmp_path / "model", env=short_maze(seed=1))
-    assert loaded.lower.replay_buffer.buffer_size == 2000
-    loaded.learn(100, reset_num_timesteps=False)
-    assert loaded.num_timesteps == 200
-
-
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
-def test_checkpoint_with_buffers_resumes_where_it_stopped(model_class, tmp_path, maze_env):
-    model = tiny_model(model_class, maze_env)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_a_checkpoint_with_buffers_resumes_where_it_stopped(model_class, tmp_path):
+    """Both of SB3's ways to resume: ``load(path, env=env)``, and ``load(path)`` then ``set_env(env)``; each then
+    ``load_replay_buffer`` (DIPPER, PIPER and DPO-FLAT also bring back their episodes and labelled pairs)."""
+    model = any_tiny_model(model_class, short_maze(n_envs=2))
     model.learn(200)
     model.save(tmp_path / "model")
     model.save_replay_buffer(tmp_path / "buffer.pkl")
-    resumed = model_class.load(tmp_path / "model", env=short_maze(seed=1))
-    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
-    assert resumed.lower.replay_buffer.pos == model.lower.replay_buffer.pos
-    np.testing.assert_array_equal(resumed.lower.replay_buffer.actions, model.lower.replay_buffer.actions)
-    if model_class is DIPPER:
-        assert len(resumed.preferences) == len(model.preferences) > 0
-        np.testing.assert_array_equal(resumed.preferences.all_pairs().labels, model.preferences.all_pairs().labels)
-        assert len(resumed.trajectory_buffer) == len(model.trajectory_buffer) > 0
-        assert list(np.load(tmp_path / "buffer.high.npz", allow_pickle=False).keys())
-    else:
-        assert resumed.higher.replay_buffer.pos == model.higher.replay_buffer.pos > 0
-    resumed.learn(100, reset_num_timesteps=False)
-    assert resumed.num_timesteps == 300
+    saved_data = stored_data(model)
+    assert all(len(data) > 0 for data in saved_data.values())
+    # Episodes and labelled pairs (and DAC's absorbing transitions) are npz files, read without pickle.
+    assert any(tmp_path.glob("buffer*.npz")) or not hasattr(model, "preferences")
+    for path in tmp_path.glob("buffer*.npz"):
+        with np.load(path, allow_pickle=False) as data:
+            assert data.files
+
+    loaded_with_env = model_class.load(tmp_path / "model", env=short_maze(n_envs=2, seed=1))
+    given_env_later = model_class.load(tmp_path / "model")
+    given_env_later.set_env(short_maze(n_envs=2, seed=1))
+    for resumed in (loaded_with_env, given_env_later):
+        resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+        assert_same_data(stored_data(resumed), saved_data)
+        # Training buffers of the configured size (the predict-only load's small ones are gone).
+        assert {name: buffer.buffer_size for name, buffer in replay_buffers(resumed).items()} == {
+            name: buffer.buffer_size for name, buffer in replay_buffers(model).items()
+        }
+        resumed.learn(100, reset_num_timesteps=False)
+        assert resumed.num_timesteps == 300
 
 
-def parameters(model) -> dict[str, th.Tensor]:
-    return {name: tensor.clone() for name, tensor in model.lower.policy.state_dict().items()} | {
-        f"high.{name}": tensor.clone() for name, tensor in model.policy.state_dict().items()
-    }
+# ---------------------------------------------------------------------------------------------------- determinism
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_same_seed_same_first_thousand_steps(model_class):
+    """Both levels' weights and optimizers, and everything collected, over a thousand steps of 20-step episodes."""
     runs = []
     for _ in range(2):
-        model = tiny_model(model_class, short_maze(seed=2), seed=11, learning_starts=200)
+        model = any_tiny_model(model_class, short_maze(seed=2), seed=11, learning_starts=200)
         model.learn(1000)
-        runs.append((parameters(model), model.lower.replay_buffer.observations["observation"][:1000].copy()))
-    (params_a, observations_a), (params_b, observations_b) = runs
-    np.testing.assert_array_equal(observations_a, observations_b)
-    assert params_a.keys() == params_b.keys()
-    for name in params_a:
-        assert th.equal(params_a[name], params_b[name]), name
+        runs.append((model.get_parameters(), stored_data(model)))
+    (parameters_a, data_a), (parameters_b, data_b) = runs
+    assert_same_data(data_a, data_b)
+    assert_same_state(parameters_a, parameters_b)
 
 
-def test_a_different_seed_gives_a_different_run():
-    first = tiny_model(DIPPER, short_maze(seed=2), seed=1)
-    second = tiny_model(DIPPER, short_maze(seed=2), seed=2)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_a_different_seed_gives_a_different_run(model_class):
+    first = any_tiny_model(model_class, short_maze(seed=2), seed=1)
+    second = any_tiny_model(model_class, short_maze(seed=2), seed=2)
     first.learn(100)
     second.learn(100)
-    assert not np.array_equal(first.lower.replay_buffer.actions[:50], second.lower.replay_buffer.actions[:50])
+    first_data, second_data = stored_data(first), stored_data(second)
+    assert not any(np.array_equal(first_data[name], second_data[name]) for name in first_data if name.endswith("actions"))
+    first_parameters, second_parameters = first.policy.state_dict(), second.policy.state_dict()
+    assert not all(th.equal(first_parameters[name], second_parameters[name]) for name in first_parameters)

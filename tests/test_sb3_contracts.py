@@ -20,17 +20,21 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import DAC, DIPPER, HIER, RAPS, SACDemo
-from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.hierarchical_policy import HierarchicalPolicy
 from sb3_dipper.common.loading import _pickled_class_name
 from sb3_dipper.common.low_level import SubgoalVecEnv, low_level_observation_space
 from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
-from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
+from tests.conftest import (
+    ALL_ALGORITHMS,
+    HIERARCHICAL_ALGORITHMS,
+    OPTION_ALGORITHMS,
+    any_tiny_model,
+    short_maze,
+    tiny_model,
+)
 from tests.test_save_load import rollout_actions
 
-# Algorithms with an option layer (RAPS's lower level is scripted) and algorithms that size buffers by episodes (DAC
-# and SACDemo store transitions only).
-OPTION_ALGORITHMS = [model_class for model_class in ALL_ALGORITHMS if issubclass(model_class, HierarchicalAlgorithm)]
+# Algorithms that size buffers by episodes (DAC and SACDemo store transitions only).
 EPISODE_SIZED_ALGORITHMS = [model_class for model_class in ALL_ALGORITHMS if model_class not in (DAC, SACDemo)]
 
 
@@ -80,12 +84,13 @@ def test_load_then_set_env_then_learn_trains_with_the_configured_buffers(model_c
     assert buffer_sizes(loaded) == buffer_sizes(model)
 
 
-def test_set_env_moves_a_trained_model_to_the_new_env(maze_env):
-    model = tiny_model(DIPPER, maze_env)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_set_env_moves_a_trained_model_to_the_new_env(model_class, maze_env):
+    model = any_tiny_model(model_class, maze_env)
     model.learn(40)
     new_env = short_maze(seed=5)
     model.set_env(new_env)
-    assert model.option_env.venv is new_env
+    assert (model.option_env.venv if model_class in OPTION_ALGORITHMS else model.get_env()) is new_env
     model.learn(20, reset_num_timesteps=False)
     assert model.num_timesteps == 60
 

@@ -196,6 +196,7 @@ def test_value_gaps_on_real_steps_keep_the_random_stream_of_every_step(trained_d
     assert th.equal(th.rand(4), next_draw)
 
 
+@pytest.mark.tools
 def test_the_updates_benchmark_prints_ratios_to_sb3_sac(trained_dipper, monkeypatch, capsys):
     monkeypatch.setattr(benchmark, "make_model", lambda algo, env_id, seed: (trained_dipper, None, 0))
     benchmark.run_updates(argparse.Namespace(env="PointMazeFourRooms-v0", warmup=20, updates=2, repeats=1))

@@ -3,7 +3,7 @@
     python zoo_scripts/screenshots.py           # or `make screenshots`
 
 Writes ``docs/_static/screenshots/readme.png`` and ``labelling-page.png`` (whole pages, 1280 px wide) and
-``screenshots.json``, the fingerprint of what each one shows. ``tests/test_screenshots.py`` compares those fingerprints
+``screenshots.json``, the fingerprint of what each one shows. ``tests/tools/test_screenshots.py`` compares those fingerprints
 with the sources, without a browser: a screenshot whose source changed in a way that changes how it looks fails the
 test until this script is run again.
 

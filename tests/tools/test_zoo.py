@@ -49,7 +49,7 @@ TINY_HIERARCHICAL = [
     "policy_kwargs:dict(net_arch=[16])",
 ]
 # dipper_paper and dipper_nov are DIPPER with other hyperparameters: the YAML tests check their entries and
-# tests/test_profiles.py builds them, so a train-and-enjoy subprocess pair of their own (~30 s each) would only repeat
+# tests/tools/test_profiles.py builds them, so a train-and-enjoy subprocess pair of their own (~30 s each) would only repeat
 # DIPPER's.
 TINY_PARAMS = {
     "dipper": [*TINY_HIERARCHICAL, "n_preference_pairs:200", "pairs_per_batch:8", "trajectory_buffer_size:50"],
@@ -100,7 +100,7 @@ def test_every_yaml_entry_names_only_constructor_keywords(path):
 
 @pytest.mark.parametrize("path", YAML_FILES, ids=lambda path: path.stem)
 def test_every_algorithm_has_the_fast_env_the_paper_tasks_and_a_default(path):
-    """Both sets: the CPU profiles here and the paper scale in hyperparams/paper/ (their sizes: tests/test_profiles.py)."""
+    """Both sets: the CPU profiles here and the paper scale in hyperparams/paper/ (their sizes: test_profiles.py)."""
     assert {ENV_ID, "default", *PAPER_TASKS} <= set(yaml.safe_load(path.read_text()))
     assert {"default", *PAPER_TASKS} <= set(yaml.safe_load((path.parent / "paper" / path.name).read_text()))
 
@@ -216,7 +216,11 @@ def test_train_on_an_upstream_goal_env_without_an_entry_of_its_own(tmp_path):
     assert (run_dir / "FetchReach-v4.zip").exists() and (run_dir / "progress.csv").exists()
 
 
-@pytest.mark.parametrize("algo", sorted(TINY_PARAMS))
+# DIPPER's pair runs by default; the other algorithms' (~12 s each) under `make test-slow`: in-process, tests/test_run.py
+# and tests/test_save_load.py train, save, load and predict every algorithm.
+@pytest.mark.parametrize(
+    "algo", [algo if algo == "dipper" else pytest.param(algo, marks=pytest.mark.slow) for algo in sorted(TINY_PARAMS)]
+)
 def test_train_then_enjoy_in_subprocesses(algo, tmp_path):
     trained = zoo(
         "train", "--algo", algo, "--env", ENV_ID, "-n", "300", "--seed", "0", "-f", "logs", "--eval-freq", "-1",

@@ -19,7 +19,7 @@ from tests.conftest import tiny_model
 from zoo_scripts.configs import trained_run
 from zoo_scripts.research.oracle_subgoals import oracle_subgoals, run_episodes
 
-SCRIPT = Path(__file__).resolve().parent.parent / "zoo_scripts" / "research" / "oracle_subgoals.py"
+SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "research" / "oracle_subgoals.py"
 
 ENV_ID = "FetchPickAndPlaceFixed-v0"
 

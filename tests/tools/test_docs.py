@@ -23,7 +23,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 import sb3_dipper
 from tests.conftest import ALL_ALGORITHMS, any_tiny_model
 
-DOCS = Path(__file__).resolve().parent.parent / "docs"
+DOCS = Path(__file__).resolve().parents[2] / "docs"
 MODULE_DIRECTIVE = re.compile(r"^\.\. (?:py:)?(?:module|currentmodule|automodule):: +(\S+)\s*$")
 OBJECT_DIRECTIVE = re.compile(r"^\.\. (?:auto|py:)(?:class|function|data|exception|attribute|method):: +([\w.]+)")
 MEMBERS_OPTION = re.compile(r"^ +:members: +(\S.*)$")

@@ -1,6 +1,6 @@
 """``zoo_scripts/plot.py``: figures from hand-written zoo log folders, one or several (a benchmark's seed folders).
 
-Real zoo runs, written by ``benchmark.py learning``, are plotted in tests/test_benchmark.py.
+Real zoo runs, written by ``benchmark.py learning``, are plotted in tests/tools/test_benchmark.py.
 """
 
 import json
@@ -195,7 +195,7 @@ def test_hierarchical_metrics_from_a_benchmark_csv(tmp_path):
 
 
 def test_training_success_reads_every_part_of_a_paused_run_in_step_order(tmp_path):
-    from tests.test_benchmark import write_monitor
+    from tests.tools.test_benchmark import write_monitor
 
     write_monitor(tmp_path / "part_1", [100, 100], [0, 1])
     write_monitor(tmp_path / "part_2", [100], [0])

@@ -13,7 +13,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS
 from sb3_dipper.zoo import ZOO_ALGORITHMS, hyperparams_dir
-from tests.test_zoo import PAPER_TASKS
+from tests.tools.test_zoo import PAPER_TASKS
 from zoo_scripts.configs import load_entry, make_model
 
 PAPER_DIR = hyperparams_dir() / "paper"
