@@ -4,13 +4,13 @@ from sb3_dipper.common.subgoals import SubgoalSpace, register_subgoal_space
 from sb3_dipper.dac import DAC
 from sb3_dipper.dipper import DIPPER
 from sb3_dipper.dpo_flat import DPOFlat
+from sb3_dipper.envs import register_envs
 from sb3_dipper.hac import HAC
 from sb3_dipper.hier import HIER
 from sb3_dipper.piper import PIPER
 from sb3_dipper.raps import RAPS
-from sb3_dipper.saga import SAGA
 from sb3_dipper.sac_demo import SACDemo
-from sb3_dipper.envs import register_envs
+from sb3_dipper.saga import SAGA
 
 register_envs()
 

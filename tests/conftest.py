@@ -6,11 +6,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import pytest
 import torch as th
+from stable_baselines3 import HerReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 
 import sb3_dipper
-from stable_baselines3 import HerReplayBuffer
-
 from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat, SACDemo
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 

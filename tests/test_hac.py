@@ -9,8 +9,8 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import Logger, configure
 
-from sb3_dipper.hac import HAC
 from sb3_dipper.common.low_level import clipped_soft_target
+from sb3_dipper.hac import HAC
 from sb3_dipper.hac.hindsight import (
     future_goal_pairs,
     goal_rewards,

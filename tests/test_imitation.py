@@ -9,19 +9,19 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from sb3_dipper import DIPPER, HIER
+from sb3_dipper.common import imitation
 from sb3_dipper.common.demonstrations import (
     DART_ACTION_NOISE,
     demonstrations_for,
     load_demonstrations,
     normalize_like_demonstrations,
 )
-from sb3_dipper.common import imitation
 from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, behaviour_cloning_loss, q_filter_mask
 from sb3_dipper.common.low_level import clipped_soft_target
 from sb3_dipper.common.subgoals import SubgoalSpace
-from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
 

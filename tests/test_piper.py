@@ -8,9 +8,9 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
+from sb3_dipper.common.losses import preference_accuracy
 from sb3_dipper.common.preferences import sample_trajectory_pairs
 from sb3_dipper.piper import PIPER, LearnedRewardReplayBuffer
-from sb3_dipper.common.losses import preference_accuracy
 from sb3_dipper.piper.piper import bradley_terry_loss, reward_model_logits
 from tests.conftest import short_maze
 

@@ -7,13 +7,13 @@ from gymnasium import spaces
 
 from sb3_dipper.common.preference_pipeline import PreferencePipeline
 from sb3_dipper.common.preferences import (
+    MAX_NEW_PAIRS_PER_ROUND,
     PreferenceDataset,
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     SegmentPairSampler,
     TrajectoryPairs,
     TrajectoryPairSampler,
-    MAX_NEW_PAIRS_PER_ROUND,
     final_goal_distances,
     labels_from_scores,
     load_preference_data,

@@ -23,10 +23,9 @@ from stable_baselines3.common.callbacks import EvalCallback
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+from configs import evaluate, load_entry, make_env, make_model, torch_threads
 
 from sb3_dipper.common.files import write_atomically
-
-from configs import evaluate, load_entry, make_env, make_model, torch_threads
 
 ENV_ID = "PointMazeFourRooms-v0"
 

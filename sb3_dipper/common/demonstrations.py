@@ -31,7 +31,6 @@ from typing import Any, Protocol
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_dipper.common.files import read_npz, save_npz

@@ -37,8 +37,8 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_normalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
-from sb3_dipper.common.deprecation import MovedParameter
 from sb3_dipper.common.demonstrations import Demonstrations, demonstrations_for, normalize_like_demonstrations
+from sb3_dipper.common.deprecation import MovedParameter
 from sb3_dipper.common.files import read_replay_buffer, replay_buffer_path, save_replay_buffer_file
 from sb3_dipper.common.hierarchical_policy import (
     ActingLowLevel,

@@ -7,7 +7,6 @@ A trajectory is the sequence of higher-level decisions of one base-env episode: 
 
 from __future__ import annotations
 
-
 import numpy as np
 from gymnasium import spaces
 

@@ -6,8 +6,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from sb3_dipper.envs.demos import default_demonstrations, expert_demonstrations
 from sb3_dipper.common.imitation import DemonstrationBuffer
+from sb3_dipper.envs.demos import default_demonstrations, expert_demonstrations
 from zoo_scripts.research.clone_demonstration import (
     first_departure,
     fit_clone,

@@ -13,8 +13,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import DIPPER
-from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OBJECT_REST_Z
 from sb3_dipper.envs.demos import default_demonstrations
+from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OBJECT_REST_Z
 from tests.conftest import tiny_model
 from zoo_scripts.configs import trained_run
 from zoo_scripts.research.oracle_subgoals import oracle_subgoals, run_episodes

@@ -32,8 +32,8 @@ from sb3_dipper.zoo import (
     split_run_control,
 )
 from tests.conftest import short_maze, tiny_model
-from tests.tools.test_benchmark import ENV_ID, learning_command, run_folder
 from tests.test_files import truncate
+from tests.tools.test_benchmark import ENV_ID, learning_command, run_folder
 
 
 @pytest.mark.parametrize("algo", ["hier", "sac"])

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
-
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm

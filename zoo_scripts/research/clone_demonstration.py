@@ -53,10 +53,10 @@ import csv
 import io
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
