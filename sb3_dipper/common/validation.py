@@ -230,3 +230,21 @@ def as_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
     if value not in choices:
         raise InvalidSetting(name, f"Unknown {name} {value!r}: choose one of {choices}")
     return value
+
+
+def check_flat_sac_settings(model: Any) -> None:
+    """Coerce or refuse the settings of a flat SB3 SAC (DAC, SACDemo) in place: they may arrive as floats or strings (zoo
+    ``-params``, YAML ``5e4``), so they are checked when the model is built or loaded, not in training.
+
+    :param model: the SAC whose ``buffer_size``, ``learning_starts``, ``batch_size``, ``tau``, ``gamma``,
+        ``train_freq``, ``gradient_steps`` and ``target_update_interval`` are checked
+    """
+    model.buffer_size = as_int("buffer_size", model.buffer_size, 1)
+    model.learning_starts = as_int("learning_starts", model.learning_starts, 0)
+    model.batch_size = as_int("batch_size", model.batch_size, 1)
+    model.tau = as_float("tau", model.tau, 0.0, 1.0, low_open=True)
+    # SB3's SAC range: gamma = 0 (a bandit) is meaningful for a flat learner.
+    model.gamma = as_float("gamma", model.gamma, 0.0, 1.0)
+    model.train_freq = as_train_freq(model.train_freq)
+    model.gradient_steps = as_int("gradient_steps", model.gradient_steps, -1, "-1: as many as environment steps collected")
+    model.target_update_interval = as_int("target_update_interval", model.target_update_interval, 1)

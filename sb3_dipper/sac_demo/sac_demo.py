@@ -40,7 +40,7 @@ from sb3_dipper.common.validation import (
     as_float,
     as_int,
     as_optional_int,
-    as_train_freq,
+    check_flat_sac_settings,
     check_goal_observation_space,
 )
 from sb3_dipper.sac_demo.policies import MlpPolicy, MultiInputPolicy
@@ -190,16 +190,8 @@ class SACDemo(CheckedLoading, DemoSAC):
     def _check_settings(self) -> None:
         super()._check_settings()
         # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
-        self.buffer_size = as_int("buffer_size", self.buffer_size, 1)
-        self.learning_starts = as_int("learning_starts", self.learning_starts, 0)
-        self.batch_size = as_int("batch_size", self.batch_size, 1)
-        self.tau = as_float("tau", self.tau, 0.0, 1.0, low_open=True)
-        # SB3's SAC range: gamma = 0 (a bandit) is meaningful for a flat learner.
-        self.gamma = as_float("gamma", self.gamma, 0.0, 1.0)
-        self.train_freq = as_train_freq(self.train_freq)  # type: ignore[assignment]
-        self.gradient_steps = as_int("gradient_steps", self.gradient_steps, -1, "-1: as many as environment steps collected")
+        check_flat_sac_settings(self)
         self.n_steps = as_int("n_steps", self.n_steps, 1)
-        self.target_update_interval = as_int("target_update_interval", self.target_update_interval, 1)
         self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "None: all the episodes demo_path makes")
         self.demo_share = as_float("demo_share", self.demo_share, 0.0, 1.0)
         self.bc_coef = as_float("bc_coef", self.bc_coef, 0.0, reason="it weighs a loss")
