@@ -10,7 +10,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
 
-from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat
+from sb3_dipper import DAC, DIPPER, HAC, HIER, PIPER, RAPS, SAGA, DPOFlat, SACDemo
 from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, OPTION_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 
 
@@ -166,6 +166,7 @@ LOG_KEYS = {
     DAC: {"train/actor_loss", "train/critic_loss", "train/disc_loss", "train/disc_expert_accuracy"}
     | {"train/disc_policy_accuracy", "train/gradient_penalty", "train/disc_reward"},
     DPOFlat: {"rollout/ep_len_mean", "train/dpo_loss", "train/preference_pairs", "train/pref_accuracy", "train/n_updates"},
+    SACDemo: {"train/actor_loss", "train/critic_loss", "train/ent_coef", "train/bc_loss", "train/q_filter_kept"},
 }
 
 
