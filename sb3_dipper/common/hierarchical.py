@@ -28,7 +28,6 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import SAC
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
@@ -65,7 +64,7 @@ from sb3_dipper.common.validation import (
     as_float,
     as_int,
     as_optional_int,
-    check_goal_observation_space,
+    policy_class_and_goal_env,
 )
 
 SelfHierarchicalAlgorithm = TypeVar("SelfHierarchicalAlgorithm", bound="HierarchicalAlgorithm")
@@ -187,15 +186,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         seed: int | None = None,
         device: th.device | str = "auto",
     ) -> None:
-        algorithm = type(self).__name__
-        if isinstance(policy, str):
-            if policy not in self.policy_aliases:
-                raise ValueError(f"{algorithm} has no policy {policy!r}; choose one of {sorted(self.policy_aliases)}")
-            # Map the alias ourselves: SB3 refuses the string "MlpPolicy" for Dict observations, and goal envs are Dict.
-            policy = self.policy_aliases[policy]
-        if env is not None:
-            env = maybe_make_env(env, verbose)
-            check_goal_observation_space(env.observation_space, algorithm)
+        policy, env = policy_class_and_goal_env(self, policy, env, verbose)
         super().__init__(
             policy,
             env,

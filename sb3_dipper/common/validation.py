@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.deprecation import MovedParameter, replacement_text
@@ -248,3 +249,24 @@ def check_flat_sac_settings(model: Any) -> None:
     model.train_freq = as_train_freq(model.train_freq)
     model.gradient_steps = as_int("gradient_steps", model.gradient_steps, -1, "-1: as many as environment steps collected")
     model.target_update_interval = as_int("target_update_interval", model.target_update_interval, 1)
+
+
+def policy_class_and_goal_env(model: Any, policy: Any, env: Any, verbose: int) -> tuple[Any, Any]:
+    """A constructor's ``policy`` and ``env`` as SB3's base class should get them: a policy alias mapped to its class by
+    the model's ``policy_aliases`` (SB3 refuses the string ``"MlpPolicy"`` for Dict observations, and goal envs are
+    Dict), an env id made into an env and refused unless it is a goal env, both errors naming the algorithm.
+
+    :param model: the algorithm being constructed (its class names it in errors)
+    :param policy: the constructor's ``policy``: a class or an alias
+    :param env: the constructor's ``env``: an env, an env id or ``None``
+    :param verbose: the constructor's ``verbose``, for SB3's ``maybe_make_env``
+    """
+    algorithm = type(model).__name__
+    if isinstance(policy, str):
+        if policy not in model.policy_aliases:
+            raise ValueError(f"{algorithm} has no policy {policy!r}; choose one of {sorted(model.policy_aliases)}")
+        policy = model.policy_aliases[policy]
+    if env is not None:
+        env = maybe_make_env(env, verbose)
+        check_goal_observation_space(env.observation_space, algorithm)
+    return policy, env

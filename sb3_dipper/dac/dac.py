@@ -59,7 +59,6 @@ import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3 import SAC, HerReplayBuffer
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
@@ -83,7 +82,7 @@ from sb3_dipper.common.validation import (
     as_optional_float,
     as_optional_int,
     check_flat_sac_settings,
-    check_goal_observation_space,
+    policy_class_and_goal_env,
 )
 from sb3_dipper.dac.policies import Discriminator, MlpPolicy, MultiInputPolicy
 
@@ -406,14 +405,7 @@ class DAC(CheckedLoading, SAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        if isinstance(policy, str):
-            if policy not in self.policy_aliases:
-                raise ValueError(f"DAC has no policy {policy!r}; choose one of {sorted(self.policy_aliases)}")
-            # Map the alias ourselves: SB3 refuses the string "MlpPolicy" for Dict observations, and goal envs are Dict.
-            policy = self.policy_aliases[policy]  # type: ignore[assignment]
-        if env is not None:
-            env = maybe_make_env(env, verbose)
-            check_goal_observation_space(env.observation_space, "DAC")
+        policy, env = policy_class_and_goal_env(self, policy, env, verbose)
         super().__init__(
             policy,  # type: ignore[arg-type]
             env,  # type: ignore[arg-type]

@@ -27,7 +27,6 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -44,7 +43,13 @@ from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferenceP
 from sb3_dipper.common.preferences import PreferenceSource, SegmentPairSampler, TrajectoryPairs, flat_pair_observations
 from sb3_dipper.common.preferences import sample_segment_pairs as sample_segment_pairs  # public here first
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import as_float, as_int, as_optional_int, as_train_freq, check_goal_observation_space
+from sb3_dipper.common.validation import (
+    as_float,
+    as_int,
+    as_optional_int,
+    as_train_freq,
+    policy_class_and_goal_env,
+)
 from sb3_dipper.dipper.policies import DIPPERPolicy
 from sb3_dipper.dpo_flat.policies import MlpPolicy, MultiInputPolicy
 from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
@@ -143,14 +148,7 @@ class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        if isinstance(policy, str):
-            if policy not in self.policy_aliases:
-                raise ValueError(f"DPOFlat has no policy {policy!r}; choose one of {sorted(self.policy_aliases)}")
-            # Map the alias ourselves: SB3 refuses the string "MlpPolicy" for Dict observations, and goal envs are Dict.
-            policy = self.policy_aliases[policy]  # type: ignore[assignment]
-        if env is not None:
-            env = maybe_make_env(env, verbose)
-            check_goal_observation_space(env.observation_space, "DPOFlat")
+        policy, env = policy_class_and_goal_env(self, policy, env, verbose)
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]

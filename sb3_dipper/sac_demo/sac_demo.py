@@ -25,7 +25,6 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3 import HerReplayBuffer
-from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
@@ -41,7 +40,7 @@ from sb3_dipper.common.validation import (
     as_int,
     as_optional_int,
     check_flat_sac_settings,
-    check_goal_observation_space,
+    policy_class_and_goal_env,
 )
 from sb3_dipper.sac_demo.policies import MlpPolicy, MultiInputPolicy
 
@@ -137,14 +136,7 @@ class SACDemo(CheckedLoading, DemoSAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        if isinstance(policy, str):
-            if policy not in self.policy_aliases:
-                raise ValueError(f"SACDemo has no policy {policy!r}; choose one of {sorted(self.policy_aliases)}")
-            # Map the alias ourselves: SB3 refuses the string "MlpPolicy" for Dict observations, and goal envs are Dict.
-            policy = self.policy_aliases[policy]  # type: ignore[assignment]
-        if env is not None:
-            env = maybe_make_env(env, verbose)
-            check_goal_observation_space(env.observation_space, "SACDemo")
+        policy, env = policy_class_and_goal_env(self, policy, env, verbose)
         super().__init__(
             policy,
             env,
