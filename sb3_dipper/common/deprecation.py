@@ -81,6 +81,26 @@ def move_deprecated_parameters(
     return moved_kwargs
 
 
+def completed_groups(
+    declared: Mapping[str, MovedParameter], given: Mapping[str, Any], base: Mapping[str, Any]
+) -> dict[str, Any]:
+    """``given`` with each group among them (``demo_kwargs``) completed by the keys of the same group in ``base`` that it
+    does not name: set over ``base`` (a saved model's settings, a zoo entry), a group changes the keys it names, as the
+    parameters it holds did one by one. A group that is no dict in ``base`` is replaced whole.
+
+    :param declared: the class's deprecated parameters, which name its groups
+    :param given: the keyword arguments given (a group given as ``None`` keeps ``base``'s)
+    :param base: the settings they are set over
+    """
+    groups = {moved.group for moved in declared.values()}
+    return {
+        name: {**base[name], **(value or {})}
+        if name in groups and isinstance(base.get(name), dict) and (value is None or isinstance(value, dict))
+        else value
+        for name, value in given.items()
+    }
+
+
 def in_new_form(hyperparameters: Mapping[str, Any], algorithms: Iterable[type]) -> dict[str, Any]:
     """``hyperparameters`` with the deprecated parameters of any of ``algorithms`` moved into their groups, without a
     warning: the same settings in today's form, so that hyperparameters recorded in the old form (a run's

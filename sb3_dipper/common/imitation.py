@@ -20,7 +20,6 @@ The flat :class:`~sb3_dipper.sac_demo.SACDemo` clones in the same way, with the 
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
@@ -34,7 +33,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
-from sb3_dipper.common.validation import InvalidSetting, as_float, as_optional_int
+from sb3_dipper.common.validation import InvalidSetting, as_float, as_optional_int, check_dict_keys
 
 # The demonstration settings of a hierarchical algorithm's lower level (its ``demo_kwargs``), with their defaults.
 DEFAULT_DEMO_KWARGS: dict[str, Any] = dict(
@@ -55,11 +54,7 @@ def checked_demo_kwargs(demo_kwargs: Mapping[str, Any]) -> dict[str, Any]:
 
     :param demo_kwargs: a hierarchical algorithm's ``demo_kwargs``
     """
-    for key in demo_kwargs:
-        if key not in DEFAULT_DEMO_KWARGS:
-            close = difflib.get_close_matches(key, DEFAULT_DEMO_KWARGS, n=1)
-            hint = f"did you mean {close[0]!r}?" if close else f"its keys are {', '.join(DEFAULT_DEMO_KWARGS)}"
-            raise TypeError(f"demo_kwargs got an unexpected key {key!r}; {hint}")
+    check_dict_keys("demo_kwargs", demo_kwargs, DEFAULT_DEMO_KWARGS)
     settings = {**DEFAULT_DEMO_KWARGS, **demo_kwargs}
     try:
         settings["n_demos"] = as_optional_int(
