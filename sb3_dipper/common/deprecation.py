@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import sys
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from typing import Any, NamedTuple
 
 
@@ -81,18 +81,15 @@ def move_deprecated_parameters(
     return moved_kwargs
 
 
-def completed_groups(
-    declared: Mapping[str, MovedParameter], given: Mapping[str, Any], base: Mapping[str, Any]
-) -> dict[str, Any]:
-    """``given`` with each group among them (``demo_kwargs``) completed by the keys of the same group in ``base`` that it
-    does not name: set over ``base`` (a saved model's settings, a zoo entry), a group changes the keys it names, as the
-    parameters it holds did one by one. A group that is no dict in ``base`` is replaced whole.
+def completed_groups(groups: Collection[str], given: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+    """``given`` with each of ``groups`` among them (``demo_kwargs``) completed by the keys of the same group in
+    ``base`` that it does not name: set over ``base`` (a saved model's settings, a zoo entry), a group changes the keys
+    it names, as the parameters it holds did one by one. A group that is no dict in ``base`` is replaced whole.
 
-    :param declared: the class's deprecated parameters, which name its groups
+    :param groups: the dict parameters given key by key (a class's ``setting_groups``)
     :param given: the keyword arguments given (a group given as ``None`` keeps ``base``'s)
     :param base: the settings they are set over
     """
-    groups = {moved.group for moved in declared.values()}
     return {
         name: {**base[name], **(value or {})}
         if name in groups and isinstance(base.get(name), dict) and (value is None or isinstance(value, dict))

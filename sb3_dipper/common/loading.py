@@ -266,6 +266,13 @@ class CheckedLoading(BaseAlgorithm):
     # Constructor parameters that moved into a dict parameter, by their old names (:mod:`sb3_dipper.common.deprecation`).
     deprecated_parameters: ClassVar[Mapping[str, MovedParameter]] = {}
 
+    @classmethod
+    def setting_groups(cls) -> set[str]:
+        """The dict parameters whose keys are settings of their own (``demo_kwargs``; those that took deprecated
+        parameters in): one given to ``load`` changes the keys it names of the saved one, and a trial of the zoo's
+        tuning those of the YAML entry's."""
+        return {moved.group for moved in cls.deprecated_parameters.values()}
+
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Let the class's constructor take its deprecated parameters (out of its signature), and give its models their
         old attributes, which warn."""
@@ -365,7 +372,7 @@ class CheckedLoading(BaseAlgorithm):
         kwargs = move_deprecated_parameters(cls.__name__, cls.deprecated_parameters, kwargs)
         # A group holding objects that are no JSON was pickled whole; it is replaced, as SB3 replaces any setting.
         readable = {name: value for name, value in fields.items() if not (isinstance(value, dict) and ":serialized:" in value)}
-        return completed_groups(cls.deprecated_parameters, kwargs, readable)
+        return completed_groups(cls.setting_groups(), kwargs, readable)
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""

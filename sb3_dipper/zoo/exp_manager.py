@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from sb3_dipper.common.deprecation import MovedParameter, completed_groups
+from sb3_dipper.common.deprecation import completed_groups
 from sb3_dipper.labelling.training_page import start_label_page
 from sb3_dipper.zoo.resume import (
     RESUME_FOLDER,
@@ -100,8 +100,9 @@ def yaml_entry(config: str, env_id: str) -> dict[str, Any] | None:
 
 
 class TrialsKeepTheEntrysGroups(_ExperimentManager):
-    """rl-zoo3's experiment manager whose Optuna trials change only the keys they sample of a dict that holds what were
-    parameters of their own (:func:`~sb3_dipper.common.deprecation.completed_groups`, DIPPER's ``switch_kwargs``).
+    """rl-zoo3's experiment manager whose Optuna trials change only the keys they sample of a dict whose keys are
+    settings of their own (:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`, DIPPER's
+    ``switch_kwargs``; :func:`~sb3_dipper.common.deprecation.completed_groups`).
 
     rl-zoo3 sets a trial's hyperparameters over the entry's, a dict over the entry's whole dict: a trial sampling
     ``switch_kwargs["nll_coef"]`` would turn the entry's other switches off, where it changed ``nll_coef`` alone when
@@ -117,7 +118,7 @@ class TrialsKeepTheEntrysGroups(_ExperimentManager):
             trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict
         ) -> dict[str, Any]:
             sampled = sampler(trial, n_actions, n_envs, additional_args)
-            return completed_groups(self._deprecated_parameters(), sampled, self._hyperparams)
+            return completed_groups(self._setting_groups(), sampled, self._hyperparams)
 
         HYPERPARAMS_SAMPLER[self.algo] = sampler_keeping_the_entrys_groups
         try:
@@ -128,12 +129,15 @@ class TrialsKeepTheEntrysGroups(_ExperimentManager):
     def load_trial(self, storage: str, study_name: str, trial_id: int | None = None, convert: bool = True) -> dict[str, Any]:
         params = super().load_trial(storage, study_name, trial_id, convert)
         entry = yaml_entry(self.config, self.env_name.gym_id)
-        return params if not convert or entry is None else completed_groups(self._deprecated_parameters(), params, entry)
+        return params if not convert or entry is None else completed_groups(self._setting_groups(), params, entry)
 
-    def _deprecated_parameters(self) -> Mapping[str, MovedParameter]:
+    def _setting_groups(self) -> set[str]:
+        """The algorithm's dict parameters given key by key (:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`;
+        none for SB3's own algorithms)."""
         from rl_zoo3.utils import ALGOS
 
-        return getattr(ALGOS[self.algo], "deprecated_parameters", {})
+        algorithm = ALGOS[self.algo]
+        return algorithm.setting_groups() if hasattr(algorithm, "setting_groups") else set()
 
 
 def install_experiment_manager(control: RunControl | None = None) -> None:
