@@ -74,20 +74,15 @@ BAD_SETTINGS = [
     ("high_gradient_steps", -1, "must be at least 0", None),
     ("reward_gradient_steps", -1, "must be at least 0", None),
     ("segment_length", 0, "must be at least 1", None),
-    ("n_demos", 0, "must be at least 1", None),
     ("greedy_episode_interval", 0, "must be at least 1", None),
     ("n_hindsight_goals", -1, "must be at least 0", None),
     ("target_update_interval", 0, "must be at least 1", None),
     ("stats_window_size", 0, "must be at least 1", None),
     ("random_subgoal_prob", NAN, PROBABILITY, None),
-    ("demo_share", 1.5, PROBABILITY, None),
-    ("bc_coef", -1.0, NON_NEGATIVE, None),
-    ("rl_coef", -1.0, NON_NEGATIVE, None),
     ("n_steps", 0, "must be at least 1", None),
-    ("q_filter", "yes", "must be True or False", [SACDemo]),
 ]
 
-# (demo_kwargs key, bad value, what the message says after demo_kwargs['key']), for every hierarchical algorithm.
+# (demo_kwargs key, bad value, what the message says after demo_kwargs['key']), for every algorithm with demo_kwargs.
 BAD_DEMO_SETTINGS = [
     ("n_demos", 0, "must be at least 1"),
     ("n_demos", 2.5, r"must be a whole number \(an integer >= 1\)"),
@@ -95,6 +90,7 @@ BAD_DEMO_SETTINGS = [
     ("bc_coef", -1.0, NON_NEGATIVE),
     ("bc_coef", NAN, NON_NEGATIVE),
     ("rl_coef", -1.0, NON_NEGATIVE),
+    ("q_filter", "yes", "must be True or False, got 'yes'"),
 ]
 
 # (switch_kwargs key, bad value, what the message says after switch_kwargs['key']), for DIPPER.
@@ -287,11 +283,11 @@ def test_the_dicts_given_to_a_constructor_are_left_as_they_were(model_class):
 # ---------------------------------------------------------------------------------------------------- demo_kwargs
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, SACDemo])
 @pytest.mark.parametrize(("key", "value", "message"), BAD_DEMO_SETTINGS)
 def test_a_demo_setting_out_of_range_is_refused_naming_its_demo_kwargs_key(env, model_class, key, value, message):
     with pytest.raises(ValueError, match=rf"demo_kwargs\['{key}'\] {message}"):
-        tiny_model(model_class, env, demo_kwargs={key: value})
+        any_tiny_model(model_class, env, demo_kwargs={key: value})
 
 
 def test_a_demo_setting_is_checked_given_by_its_deprecated_name_in_a_file_and_to_load(saved_models, tmp_path):

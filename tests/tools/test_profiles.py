@@ -187,14 +187,11 @@ CLONING_SETTINGS = ("demo_path", "n_demos", "demo_share", "bc_coef", "rl_coef", 
 
 
 def cloning_settings(algo: str, env_id: str, directory: Path) -> dict:
-    """The demonstration and cloning settings an entry builds its model with, the constructor's defaults included: a
-    hierarchy's ``demo_kwargs``, the flat SACDemo's parameters of their own."""
-    entry = load_entry(algo, env_id, directory)
-    if issubclass(ZOO_ALGORITHMS[algo], HierarchicalAlgorithm):
-        demo_kwargs = {**DEFAULT_DEMO_KWARGS, **entry.get("demo_kwargs", {})}
-        return {key: demo_kwargs[key] for key in CLONING_SETTINGS}
-    parameters = inspect.signature(ZOO_ALGORITHMS[algo]).parameters
-    return {key: entry.get(key, parameters[key].default) for key in CLONING_SETTINGS}
+    """The demonstration and cloning settings an entry builds its model with (its ``demo_kwargs``), the defaults
+    included."""
+    assert "demo_kwargs" in inspect.signature(ZOO_ALGORITHMS[algo]).parameters, algo
+    demo_kwargs = {**DEFAULT_DEMO_KWARGS, **load_entry(algo, env_id, directory).get("demo_kwargs", {})}
+    return {key: demo_kwargs[key] for key in CLONING_SETTINGS}
 
 
 def test_sac_demo_entries_are_sac_with_dippers_demonstrations_and_cloning():
@@ -202,7 +199,7 @@ def test_sac_demo_entries_are_sac_with_dippers_demonstrations_and_cloning():
     for directory in (hyperparams_dir(), PAPER_DIR):
         for env_id in ["PointMazeFourRooms-v0", *PAPER_TASKS, "default"]:
             entry = load_entry("sac_demo", env_id, directory)
-            without_cloning = {key: value for key, value in entry.items() if key not in CLONING_SETTINGS}
+            without_cloning = {key: value for key, value in entry.items() if key != "demo_kwargs"}
             assert without_cloning == load_entry("sac", env_id, directory), (directory, env_id)
             assert cloning_settings("sac_demo", env_id, directory) == cloning_settings("dipper", env_id, directory), (
                 directory,

@@ -75,7 +75,7 @@ TINY_PARAMS = {
         "batch_size:16",
         "buffer_size:2000",
         "policy_kwargs:dict(net_arch=[16])",
-        "demo_path:'auto'",
+        "demo_kwargs:dict(demo_path='auto')",
     ],
 }
 
