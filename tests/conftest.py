@@ -65,7 +65,7 @@ OTHER_TINY_MODELS = {
     RAPS: dict(option_steps=5, high_batch_size=16, high_buffer_size=1000),
     DAC: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, discriminator_net_arch=[16]),
     DPOFlat: dict(segment_length=5, n_preference_pairs=200, pairs_per_batch=8, trajectory_buffer_size=50),
-    SACDemo: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, demo_path="auto"),
+    SACDemo: dict(buffer_size=2000, batch_size=16, replay_buffer_class=HerReplayBuffer, demo_kwargs=dict(demo_path="auto")),
 }
 
 

@@ -71,8 +71,8 @@ def test_predict_on_a_flat_observation_names_the_dict_it_needs(model_class, maze
 
 
 def test_bad_dipper_switches_are_refused(maze_env):
-    with pytest.raises(ValueError, match="Unknown value_reg 'papper'"):
-        DIPPER("MlpPolicy", maze_env, value_reg="papper")
+    with pytest.raises(ValueError, match=r"Unknown switch_kwargs\['value_reg'\] 'papper'"):
+        DIPPER("MlpPolicy", maze_env, switch_kwargs=dict(value_reg="papper"))
     with pytest.raises(ValueError, match=r"hindsight_goal_prob must be a finite number in \[0, 1\]"):
         DIPPER("MlpPolicy", maze_env, hindsight_goal_prob=1.5)
     with pytest.raises(ValueError, match="option_steps must be at least 1"):

@@ -245,8 +245,8 @@ def other_env_demos(maze_demos, path, part):
 
 
 def demonstrations(model_class, **settings):
-    """The keywords that give ``model_class`` demonstrations: DAC's and SACDemo's own, a hierarchy's demo_kwargs."""
-    return settings if model_class in (DAC, SACDemo) else dict(demo_kwargs=settings)
+    """The keywords that give ``model_class`` demonstrations: DAC's own, the others' demo_kwargs."""
+    return settings if model_class is DAC else dict(demo_kwargs=settings)
 
 
 @pytest.mark.parametrize("model_class", [DIPPER, HIER, PIPER, SAGA, HAC, DAC, SACDemo])

@@ -65,34 +65,24 @@ BAD_SETTINGS = [
     ("buffer_size", 0, "must be at least 1", None),
     ("high_buffer_size", 0, "must be at least 1", None),
     ("nll_coef", -1.0, NON_NEGATIVE, None),
-    ("label_smoothing", 0.5, r"must be a finite number in \[0, 0.5\)", None),
-    ("label_smoothing", -0.1, r"must be a finite number in \[0, 0.5\)", None),
     ("gradient_penalty_coef", -10.0, NON_NEGATIVE, None),
     ("adversarial_coef", NAN, NON_NEGATIVE, None),
     ("value_reg_coef", -0.1, NON_NEGATIVE, None),
-    ("value_score_coef", -1e-6, NON_NEGATIVE, None),
-    ("value_score_coef", INF, NON_NEGATIVE, None),
     ("n_preference_pairs", 0, "must be at least 1", None),
     ("learning_starts", -1, "must be at least 0", None),
     ("gradient_steps", -2, "must be at least", None),
     ("high_gradient_steps", -1, "must be at least 0", None),
     ("reward_gradient_steps", -1, "must be at least 0", None),
     ("segment_length", 0, "must be at least 1", None),
-    ("n_demos", 0, "must be at least 1", None),
     ("greedy_episode_interval", 0, "must be at least 1", None),
     ("n_hindsight_goals", -1, "must be at least 0", None),
     ("target_update_interval", 0, "must be at least 1", None),
     ("stats_window_size", 0, "must be at least 1", None),
     ("random_subgoal_prob", NAN, PROBABILITY, None),
-    ("goal_subgoal_prob", 1.5, PROBABILITY, None),
-    ("demo_share", 1.5, PROBABILITY, None),
-    ("bc_coef", -1.0, NON_NEGATIVE, None),
-    ("rl_coef", -1.0, NON_NEGATIVE, None),
     ("n_steps", 0, "must be at least 1", None),
-    ("q_filter", "yes", "must be True or False", [SACDemo]),
 ]
 
-# (demo_kwargs key, bad value, what the message says after demo_kwargs['key']), for every hierarchical algorithm.
+# (demo_kwargs key, bad value, what the message says after demo_kwargs['key']), for every algorithm with demo_kwargs.
 BAD_DEMO_SETTINGS = [
     ("n_demos", 0, "must be at least 1"),
     ("n_demos", 2.5, r"must be a whole number \(an integer >= 1\)"),
@@ -100,6 +90,19 @@ BAD_DEMO_SETTINGS = [
     ("bc_coef", -1.0, NON_NEGATIVE),
     ("bc_coef", NAN, NON_NEGATIVE),
     ("rl_coef", -1.0, NON_NEGATIVE),
+    ("q_filter", "yes", "must be True or False, got 'yes'"),
+]
+
+# (switch_kwargs key, bad value, what the message says after switch_kwargs['key']), for DIPPER.
+BAD_SWITCH_SETTINGS = [
+    ("nll_coef", -1.0, NON_NEGATIVE),
+    ("label_smoothing", 0.5, r"must be a finite number in \[0, 0.5\)"),
+    ("label_smoothing", -0.1, r"must be a finite number in \[0, 0.5\)"),
+    ("value_score_coef", -1e-6, NON_NEGATIVE),
+    ("value_score_coef", INF, NON_NEGATIVE),
+    ("goal_subgoal_prob", 1.5, PROBABILITY),
+    ("reference", "previous", r"'previous': choose one of \('uniform', 'averaged'\)"),
+    ("value_reg", "papper", r"'papper': choose one of \('paper', 'score', 'reparam'\)"),
 ]
 
 # Every integer-valued constructor setting; the zoo and YAML may hand any of them over as a float or a string.
@@ -259,6 +262,7 @@ DICT_SETTINGS = {
     "reward_model_kwargs": {"net_arch": [16]},
     "discriminator_kwargs": {"net_arch": [16]},
     "demo_kwargs": {"bc_coef": 0.01},
+    "switch_kwargs": {"nll_coef": 1.0},
 }
 
 
@@ -279,11 +283,11 @@ def test_the_dicts_given_to_a_constructor_are_left_as_they_were(model_class):
 # ---------------------------------------------------------------------------------------------------- demo_kwargs
 
 
-@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, SACDemo])
 @pytest.mark.parametrize(("key", "value", "message"), BAD_DEMO_SETTINGS)
 def test_a_demo_setting_out_of_range_is_refused_naming_its_demo_kwargs_key(env, model_class, key, value, message):
     with pytest.raises(ValueError, match=rf"demo_kwargs\['{key}'\] {message}"):
-        tiny_model(model_class, env, demo_kwargs={key: value})
+        any_tiny_model(model_class, env, demo_kwargs={key: value})
 
 
 def test_a_demo_setting_is_checked_given_by_its_deprecated_name_in_a_file_and_to_load(saved_models, tmp_path):
@@ -310,6 +314,55 @@ def test_demo_settings_from_the_zoo_are_converted_and_a_misspelt_key_is_named(en
     misspelt = r"HIER got an unexpected keyword argument 'bc_coeff'; did you mean demo_kwargs\['bc_coef'\]\?$"
     with pytest.raises(TypeError, match=misspelt):
         tiny_model(HIER, env, bc_coeff=1.0)
+
+
+# ---------------------------------------------------------------------------------------------------- switch_kwargs
+
+
+@pytest.mark.parametrize(("key", "value", "message"), BAD_SWITCH_SETTINGS)
+def test_a_switch_out_of_range_is_refused_naming_its_switch_kwargs_key(env, key, value, message):
+    with pytest.raises(ValueError, match=rf"switch_kwargs\['{key}'\] {message}"):
+        tiny_model(DIPPER, env, switch_kwargs={key: value})
+
+
+def test_a_switch_is_checked_in_a_file_given_to_load_and_set_on_a_built_model(saved_models, tmp_path, env):
+    saved = saved_models / "DIPPER.zip"
+    edited = with_saved_setting(saved, tmp_path / "edited.zip", "switch_kwargs", {"goal_subgoal_prob": 2.0})
+    with pytest.raises(
+        ValueError,
+        match=rf"{re.escape(str(edited))} holds .*: switch_kwargs\['goal_subgoal_prob'\] {PROBABILITY}"
+        r".*DIPPER.load\(path, switch_kwargs=",
+    ):
+        DIPPER.load(edited)
+    with pytest.raises(
+        ValueError, match=r"DIPPER.load\(.*, switch_kwargs=\{'nll_coef': -1.0.*\}\): switch_kwargs\['nll_coef'\]"
+    ):
+        DIPPER.load(saved, switch_kwargs={"nll_coef": -1.0})
+    # switch_kwargs given to load replace their keys of the saved ones.
+    loaded = DIPPER.load(saved, switch_kwargs={"hindsight_actions": True})
+    assert loaded.switch_kwargs == {**DIPPER.load(saved).switch_kwargs, "hindsight_actions": True}
+    # A switch set on a built model is checked, and acts, when it next learns.
+    model = tiny_model(DIPPER, env)
+    model.switch_kwargs["label_smoothing"] = 0.5
+    with pytest.raises(ValueError, match=r"switch_kwargs\['label_smoothing'\] must be"):
+        model.learn(10)
+    model.switch_kwargs.update(label_smoothing=0.0, truncate_at_goal=True)
+    model.learn(10)
+    assert model.preference_pipeline.sampler.goal_reached is not None
+
+
+def test_switches_from_the_zoo_are_converted_and_a_misspelt_key_is_named(env):
+    model = tiny_model(DIPPER, env, switch_kwargs={"nll_coef": "1e-2", "goal_subgoal_prob": 1})
+    assert model.switch_kwargs["nll_coef"] == 0.01 and type(model.switch_kwargs["goal_subgoal_prob"]) is float
+    with pytest.raises(TypeError, match=r"^switch_kwargs got an unexpected key 'nll_coeff'; did you mean 'nll_coef'\?$"):
+        tiny_model(DIPPER, env, switch_kwargs={"nll_coeff": 1.0})
+    with pytest.raises(TypeError, match=r"^switch_kwargs got an unexpected key 'planning'; its keys are nll_coef, "):
+        tiny_model(DIPPER, env, switch_kwargs={"planning": "subgoal"})
+    misspelt = (
+        r"DIPPER got an unexpected keyword argument 'hindsight_action'; did you mean switch_kwargs\['hindsight_actions'\]\?$"
+    )
+    with pytest.raises(TypeError, match=misspelt):
+        tiny_model(DIPPER, env, hindsight_action=True)
 
 
 def test_one_policy_kwargs_dict_builds_hier_then_dipper(env):
@@ -415,12 +468,13 @@ def random_pairs(model, n_pairs: int = 4) -> TrajectoryPairs:
 
 
 def test_the_score_value_term_has_its_own_coefficient_at_pipers_scale(env):
-    model = tiny_model(DIPPER, env, value_reg="score", value_reg_coef=0.1)
-    assert model.value_score_coef == 1e-6 and model.preference_pipeline.labeler.value_score == model._pair_value_score
+    model = tiny_model(DIPPER, env, switch_kwargs=dict(value_reg="score"), value_reg_coef=0.1)
+    assert model.switch_kwargs["value_score_coef"] == 1e-6
+    assert model.preference_pipeline.labeler.value_score == model._pair_value_score
     pairs = random_pairs(model)
     th.manual_seed(0)  # the lower value is taken at a sampled lower action
     score = model._pair_value_score(pairs)
-    model.value_score_coef = 1.0
+    model.switch_kwargs["value_score_coef"] = 1.0
     th.manual_seed(0)
     summed_values = model._pair_value_score(pairs)
     assert np.abs(summed_values).max() > 0.0

@@ -25,6 +25,7 @@ from sb3_dipper.common.hierarchical_policy import SACPolicyLowLevel
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+from sb3_dipper.dipper import DEFAULT_SWITCH_KWARGS
 from tests.conftest import SHORT_EPISODES, any_tiny_model, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from tests.test_save_load import rollout_actions
@@ -466,7 +467,7 @@ def test_an_averaged_reference_starts_every_pair_at_a_tie():
         model = tiny_model(
             DIPPER,
             short_maze(),
-            reference=reference,
+            switch_kwargs=dict(reference=reference),
             high_gradient_steps=1,
             value_reg_coef=0.0,
             policy_kwargs=dict(net_arch=[16], acting_tau=0.05),
@@ -480,7 +481,7 @@ def test_an_averaged_reference_starts_every_pair_at_a_tie():
     assert losses["averaged"] == pytest.approx(math.log(2), abs=1e-5)
     assert losses["uniform"] != pytest.approx(math.log(2), abs=1e-3)
     with pytest.raises(ValueError, match="acting_tau below 1"):
-        tiny_model(DIPPER, short_maze(), reference="averaged")
+        tiny_model(DIPPER, short_maze(), switch_kwargs=dict(reference="averaged"))
 
 
 def test_a_log_std_floor_bounds_the_log_density_of_stored_subgoals(tmp_path):
@@ -514,7 +515,13 @@ def test_goal_subgoals_execute_the_envs_goal_in_training_only(normalize):
     env = short_maze(n_envs=2)
     if normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=False)
-    model = tiny_model(DIPPER, env, goal_subgoal_prob=1.0, random_subgoal_prob=0.0, planning="subgoal")
+    model = tiny_model(
+        DIPPER,
+        env,
+        switch_kwargs=dict(goal_subgoal_prob=1.0),
+        random_subgoal_prob=0.0,
+        planner_kwargs=dict(mode="subgoal"),
+    )
     model.learn(120)
     if normalize:  # the statistics stay those the model copies
         env.training = False
@@ -667,3 +674,62 @@ def test_a_model_saved_before_planner_kwargs_loads_and_plans_as_it_did(tmp_path)
     loaded.learn(100, reset_num_timesteps=False)
     loaded.save(tmp_path / "again.zip")
     assert DIPPER.load(tmp_path / "again.zip").planner.lookahead == 2
+
+
+# ------------------------------------------------------------------------------- switch_kwargs, and the form before it
+
+OLD_SWITCHES = dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True, value_reg="score")
+
+
+def test_the_switches_as_parameters_still_work_and_warn_naming_switch_kwargs(tmp_path):
+    """Given to the constructor (the old name winning over its key), read and set as attributes, the same run."""
+    message = (
+        "DIPPER's nll_coef, hindsight_actions, truncate_at_goal, value_reg are deprecated: pass switch_kwargs="
+        "{'nll_coef': 1.0, 'hindsight_actions': True, 'truncate_at_goal': True, 'value_reg': 'score'} instead"
+    )
+    with pytest.warns(DeprecationWarning, match=re.escape(message)):
+        old = tiny_model(DIPPER, short_maze(), switch_kwargs=dict(nll_coef=0.5, label_smoothing=0.1), **OLD_SWITCHES)
+    old.set_logger(configure(str(tmp_path / "old"), ["csv"]))
+    old.learn(300, log_interval=1)
+    new = tiny_model(DIPPER, short_maze(), switch_kwargs=dict(**OLD_SWITCHES, label_smoothing=0.1))
+    new.set_logger(configure(str(tmp_path / "new"), ["csv"]))
+    new.learn(300, log_interval=1)
+    assert old.switch_kwargs == new.switch_kwargs == {**DEFAULT_SWITCH_KWARGS, **OLD_SWITCHES, "label_smoothing": 0.1}
+    logs = [pd.read_csv(tmp_path / folder / "progress.csv").filter(like="train/high") for folder in ("old", "new")]
+    assert "train/high_nll" in logs[0]
+    pd.testing.assert_frame_equal(*logs)
+
+    with pytest.warns(DeprecationWarning, match=r"DIPPER.nll_coef is deprecated: use model.switch_kwargs\['nll_coef'\]"):
+        assert old.nll_coef == 1.0
+    with pytest.warns(DeprecationWarning, match=r"DIPPER.reference is deprecated: use model.switch_kwargs\['reference'\]"):
+        old.reference = "averaged"
+    assert old.switch_kwargs["reference"] == "averaged"
+    # The model has no averaged actor: the switch, now set, is refused when it would act.
+    with pytest.raises(ValueError, match=r"switch_kwargs\['reference'\]='averaged' needs an averaged actor"):
+        old.learn(10)
+
+
+def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
+    model = tiny_model(DIPPER, short_maze(), switch_kwargs=dict(OLD_SWITCHES))
+    model.learn(100)
+    model.save(tmp_path / "new.zip")
+    # The file as DIPPER wrote it before switch_kwargs: each switch an attribute of its own.
+    with zipfile.ZipFile(tmp_path / "new.zip") as archive:
+        files = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(files["data"])
+    data.update(data.pop("switch_kwargs"))
+    files["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(tmp_path / "old.zip", "w") as archive:
+        for name, content in files.items():
+            archive.writestr(name, content)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use
+        loaded = DIPPER.load(tmp_path / "old.zip", env=short_maze())
+    assert loaded.switch_kwargs == model.switch_kwargs and not set(DEFAULT_SWITCH_KWARGS) & set(vars(loaded))
+    loaded.learn(100, reset_num_timesteps=False)
+    # A deprecated name given to load changes its key only, over the file's switches in either form.
+    for path in ("old.zip", "new.zip"):
+        with pytest.warns(DeprecationWarning, match=r"pass switch_kwargs=\{'nll_coef': 2.0\} instead"):
+            reloaded = DIPPER.load(tmp_path / path, nll_coef=2.0)
+        assert reloaded.switch_kwargs == {**model.switch_kwargs, "nll_coef": 2.0}, path

@@ -184,9 +184,12 @@ def test_log_keys(model_class, tmp_path):
 @pytest.mark.parametrize(
     "kwargs",
     [
-        dict(value_reg="score"),
-        dict(value_reg="reparam"),
-        dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True, policy_kwargs=dict(net_arch=[16], acting_tau=0.05)),
+        dict(switch_kwargs=dict(value_reg="score")),
+        dict(switch_kwargs=dict(value_reg="reparam")),
+        dict(
+            switch_kwargs=dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True),
+            policy_kwargs=dict(net_arch=[16], acting_tau=0.05),
+        ),
         dict(value_reg_coef=0.0),
     ],
 )

@@ -9,11 +9,13 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import SACDemo
 from sb3_dipper.common.demonstrations import load_demonstrations
+from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS
 from sb3_dipper.common.validation import InvalidSetting
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import short_maze
 
 MAZE = "PointMazeFourRooms-v0"
+SAC_DEMO_DEFAULTS = {key: value for key, value in DEFAULT_DEMO_KWARGS.items() if key != "normalize_from_demos"}
 TINY = dict(
     replay_buffer_class=HerReplayBuffer,
     learning_starts=40,
@@ -43,7 +45,7 @@ def test_the_demonstrations_are_flat_transitions_with_the_envs_goals_and_reward(
     """Goals are the env's desired goal or a goal the episode achieved later (whole achieved goals, no subgoal
     projection), rewarded by the env's compute_reward; actions are in the policy's [-1, 1] scale."""
     env = short_maze()
-    model = SACDemo("MultiInputPolicy", env, demo_path=str(maze_demos), n_demos=2, **TINY)
+    model = SACDemo("MultiInputPolicy", env, demo_kwargs=dict(demo_path=str(maze_demos), n_demos=2), **TINY)
     buffer = model.demonstrations
     assert buffer is not None and len(buffer) == 400
     np.testing.assert_array_equal(buffer.desired, load_demonstrations(maze_demos).observations["desired_goal"])
@@ -74,11 +76,7 @@ def test_the_cloning_loss_moves_the_actor_to_the_demonstrated_actions(maze_demos
     model = SACDemo(
         "MultiInputPolicy",
         short_maze(),
-        demo_path=str(maze_demos),
-        bc_coef=10.0,
-        rl_coef=0.0,
-        q_filter=False,
-        demo_share=0.5,
+        demo_kwargs=dict(demo_path=str(maze_demos), bc_coef=10.0, rl_coef=0.0, q_filter=False, demo_share=0.5),
         replay_buffer_class=HerReplayBuffer,
         learning_starts=40,
         learning_rate=1e-3,
@@ -99,7 +97,8 @@ def test_the_cloning_loss_moves_the_actor_to_the_demonstrated_actions(maze_demos
 
 def test_without_cloning_weight_the_demonstrations_do_not_move_the_actor(maze_demos):
     """The control: bc_coef = 0 and rl_coef = 0 leave the actor as it was (only the critics learn)."""
-    model = SACDemo("MultiInputPolicy", short_maze(), demo_path=str(maze_demos), bc_coef=0.0, rl_coef=0.0, **TINY)
+    demo_kwargs = dict(demo_path=str(maze_demos), bc_coef=0.0, rl_coef=0.0)
+    model = SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=demo_kwargs, **TINY)
     model.learn(40)
     actor = {name: tensor.clone() for name, tensor in model.actor.state_dict().items()}
     model.train(gradient_steps=20, batch_size=16)
@@ -108,7 +107,7 @@ def test_without_cloning_weight_the_demonstrations_do_not_move_the_actor(maze_de
 
 def test_demonstration_rows_are_normalised_as_the_replay_rows():
     env = VecNormalize(short_maze(), norm_reward=True)
-    model = SACDemo("MultiInputPolicy", env, demo_path="auto", **TINY)
+    model = SACDemo("MultiInputPolicy", env, demo_kwargs=dict(demo_path="auto"), **TINY)
     model.learn(100)
     fixed = model.demonstrations.sample(8)
     model.demonstrations.sample = lambda n_demo: fixed
@@ -122,15 +121,42 @@ def test_demonstration_rows_are_normalised_as_the_replay_rows():
 
 
 def test_loading_reads_the_demonstrations_again_only_with_an_env(tmp_path):
-    model = SACDemo("MultiInputPolicy", short_maze(), demo_path="auto", **TINY)
+    model = SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(demo_path="auto", bc_coef=0.02), **TINY)
     model.learn(60)
     model.save(tmp_path / "model.zip")
     assert SACDemo.load(tmp_path / "model.zip").demonstrations is None
     loaded = SACDemo.load(tmp_path / "model.zip", env=short_maze(seed=1))
+    assert loaded.demo_kwargs == model.demo_kwargs and loaded.bc_coef == 0.02
     assert len(loaded.demonstrations) == len(model.demonstrations)
     np.testing.assert_array_equal(loaded.demonstrations.actions, model.demonstrations.actions)
     loaded.learn(60, reset_num_timesteps=False)
     assert loaded.num_timesteps == 120
+    # demo_kwargs given to load change the keys they name, as the hierarchies'.
+    reloaded = SACDemo.load(tmp_path / "model.zip", env=short_maze(seed=1), demo_kwargs={"demo_share": 0.5})
+    assert reloaded.demo_kwargs == {**model.demo_kwargs, "demo_share": 0.5} and reloaded.demonstrations is not None
+
+
+def test_demo_kwargs_are_the_hierarchies_but_normalize_from_demos_checked_as_theirs(maze_demos):
+    model = SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(n_demos="1.0", bc_coef="1e-2"), **TINY)
+    assert (
+        model.demo_kwargs == {**SAC_DEMO_DEFAULTS, "n_demos": 1, "bc_coef": 0.01} and type(model.demo_kwargs["n_demos"]) is int
+    )
+    # The update reads DemoSAC's attributes, which read and write demo_kwargs: one place for each setting.
+    assert model.bc_coef == 0.01
+    model.q_filter = False
+    assert model.demo_kwargs["q_filter"] is False
+    model.demo_kwargs["rl_coef"] = 0.5
+    assert model.rl_coef == 0.5
+    with pytest.raises(
+        TypeError, match=r"^demo_kwargs got an unexpected key 'normalize_from_demos'; its keys are demo_path, "
+    ):
+        SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(normalize_from_demos=True), **TINY)
+    with pytest.raises(ValueError, match=r"demo_kwargs\['demo_share'\] must be a finite number in \[0, 1\]"):
+        SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(demo_share=1.5), **TINY)
+    with pytest.raises(
+        TypeError, match=r"SACDemo got an unexpected keyword argument 'demo_path'; did you mean 'demo_kwargs'\?"
+    ):
+        SACDemo("MultiInputPolicy", short_maze(), demo_path=str(maze_demos), **TINY)
 
 
 def test_a_predict_only_model_asks_for_an_env_to_learn(tmp_path):
@@ -141,8 +167,10 @@ def test_a_predict_only_model_asks_for_an_env_to_learn(tmp_path):
 
 @pytest.mark.parametrize(("setting", "value"), [("n_steps", 3), ("use_sde", True)])
 def test_settings_the_cloning_update_cannot_honour_are_refused_with_demonstrations(setting, value):
-    with pytest.raises(InvalidSetting, match=rf"^{setting}=.* with demo_path: .*leave demo_path out") as error:
-        SACDemo("MultiInputPolicy", short_maze(), demo_path="auto", **{setting: value}, **TINY)
+    with pytest.raises(
+        InvalidSetting, match=rf"^{setting}=.* with a demo_path: .*leave demo_kwargs\['demo_path'\] out"
+    ) as error:
+        SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(demo_path="auto"), **{setting: value}, **TINY)
     assert error.value.setting == setting
 
 

@@ -34,9 +34,7 @@ def trained_dipper(tmp_path_factory):
         DIPPER,
         short_maze(),
         demo_kwargs=dict(demo_path=str(demos), n_demos=1, demo_share=0.25),
-        nll_coef=1.0,
-        hindsight_actions=True,
-        truncate_at_goal=True,
+        switch_kwargs=dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True),
     )
     model.learn(300)
     assert len(model.preferences) > 0
@@ -161,7 +159,7 @@ def test_higher_update_on_real_steps_equals_the_padded_update(trained_dipper, mo
     dpo, _ = dipper_loss(log_probs, mask, labels, model.beta, model._reference_log_prob, gaps, model.value_reg_coef)
     nll = preferred_nll(log_probs, mask, labels)
     model.policy.actor.optimizer.zero_grad()
-    (dpo + model.nll_coef * nll).backward()
+    (dpo + model.switch_kwargs["nll_coef"] * nll).backward()
     expected_gradients = gradients(model.policy.actor)
     expected_gap = ((gaps * mask).sum() / mask.sum()).item()
 

@@ -6,7 +6,8 @@
     python zoo_scripts/benchmark.py profiles --envs FetchPush-v4 --variant b128 batch_size=128   # and a cheaper copy
     python zoo_scripts/benchmark.py updates                         # ms per lower/higher update vs SB3's SAC update
     python zoo_scripts/benchmark.py learning --algos dipper hier sac --seeds 0 1 2 --workers 2
-    python zoo_scripts/benchmark.py learning --algos dipper --variant no-nll --set nll_coef=0.0 --name ablations
+    python zoo_scripts/benchmark.py learning --algos dipper --variant no-nll --name ablations \
+        --set "switch_kwargs=dict(hindsight_actions=True, truncate_at_goal=True)"   # the maze's switches but the NLL term
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick            # every algorithm, <= 1 h
     python zoo_scripts/benchmark.py learning --protocol quick --out runs/quick --report-only --write   # BENCHMARKS.md
     python zoo_scripts/benchmark.py learning --protocol paper --ray-address HEAD:6379     # paper tasks on a cluster
@@ -19,8 +20,9 @@
 
 so hyperparameters come from the task's entry of ``hyperparams/<algo>.yml`` (``callback`` included) exactly as there,
 ``--set key=value`` and ``--env-kwargs key=value`` become the zoo's ``-params key:value`` and ``--env-kwargs key:value``
-(the value is read as Python by rl-zoo3: quote strings, ``--set "value_reg='score'"``; the env kwargs apply to the
-training and the evaluation envs), and each run is an ordinary zoo run folder::
+(the value is read as Python by rl-zoo3: quote strings, ``--set "preference_source='progress'"``; a dict replaces the
+entry's whole dict, so ``--set "switch_kwargs=dict(...)"`` names every switch the runs keep on; the env kwargs apply to
+the training and the evaluation envs), and each run is an ordinary zoo run folder::
 
     OUT/<variant or default>/seed_<n>/<algo>/<env>_1/
         0.monitor.csv ...         monitor files (episode return, length, is_success)

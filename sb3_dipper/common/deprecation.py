@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import sys
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from typing import Any, NamedTuple
 
 
@@ -79,6 +79,23 @@ def move_deprecated_parameters(
         )
         moved_kwargs[group] = {**(moved_kwargs.get(group) or {}), **replacement}
     return moved_kwargs
+
+
+def completed_groups(groups: Collection[str], given: Mapping[str, Any], base: Mapping[str, Any]) -> dict[str, Any]:
+    """``given`` with each of ``groups`` among them (``demo_kwargs``) completed by the keys of the same group in
+    ``base`` that it does not name: set over ``base`` (a saved model's settings, a zoo entry), a group changes the keys
+    it names, as the parameters it holds did one by one. A group that is no dict in ``base`` is replaced whole.
+
+    :param groups: the dict parameters given key by key (a class's ``setting_groups``)
+    :param given: the keyword arguments given (a group given as ``None`` keeps ``base``'s)
+    :param base: the settings they are set over
+    """
+    return {
+        name: {**base[name], **(value or {})}
+        if name in groups and isinstance(base.get(name), dict) and (value is None or isinstance(value, dict))
+        else value
+        for name, value in given.items()
+    }
 
 
 def in_new_form(hyperparameters: Mapping[str, Any], algorithms: Iterable[type]) -> dict[str, Any]:

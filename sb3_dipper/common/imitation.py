@@ -20,8 +20,7 @@ The flat :class:`~sb3_dipper.sac_demo.SACDemo` clones in the same way, with the 
 
 from __future__ import annotations
 
-import difflib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from typing import Any, Protocol
 
 import numpy as np
@@ -34,9 +33,10 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
-from sb3_dipper.common.validation import InvalidSetting, as_float, as_optional_int
+from sb3_dipper.common.validation import InvalidSetting, as_float, as_optional_int, check_dict_keys
 
-# The demonstration settings of a hierarchical algorithm's lower level (its ``demo_kwargs``), with their defaults.
+# The demonstration settings of a hierarchical algorithm's lower level (its ``demo_kwargs``), with their defaults; SACDemo
+# takes them too, but normalize_from_demos.
 DEFAULT_DEMO_KWARGS: dict[str, Any] = dict(
     demo_path=None,
     n_demos=None,
@@ -48,19 +48,16 @@ DEFAULT_DEMO_KWARGS: dict[str, Any] = dict(
 )
 
 
-def checked_demo_kwargs(demo_kwargs: Mapping[str, Any]) -> dict[str, Any]:
+def checked_demo_kwargs(demo_kwargs: Mapping[str, Any], keys: Collection[str] = tuple(DEFAULT_DEMO_KWARGS)) -> dict[str, Any]:
     """``demo_kwargs`` with the defaults (:data:`DEFAULT_DEMO_KWARGS`) of the keys not given, numbers converted
     (``"1e-2"`` from the zoo becomes ``0.01``) and checked: an unknown key is a ``TypeError`` naming the closest
     key, a value out of range an :class:`~sb3_dipper.common.validation.InvalidSetting` naming ``demo_kwargs['key']``.
 
-    :param demo_kwargs: a hierarchical algorithm's ``demo_kwargs``
+    :param demo_kwargs: an algorithm's ``demo_kwargs``
+    :param keys: the keys the algorithm takes, some of :data:`DEFAULT_DEMO_KWARGS`'s (default: all)
     """
-    for key in demo_kwargs:
-        if key not in DEFAULT_DEMO_KWARGS:
-            close = difflib.get_close_matches(key, DEFAULT_DEMO_KWARGS, n=1)
-            hint = f"did you mean {close[0]!r}?" if close else f"its keys are {', '.join(DEFAULT_DEMO_KWARGS)}"
-            raise TypeError(f"demo_kwargs got an unexpected key {key!r}; {hint}")
-    settings = {**DEFAULT_DEMO_KWARGS, **demo_kwargs}
+    check_dict_keys("demo_kwargs", demo_kwargs, keys)
+    settings = {**{key: DEFAULT_DEMO_KWARGS[key] for key in keys}, **demo_kwargs}
     try:
         settings["n_demos"] = as_optional_int(
             "demo_kwargs['n_demos']", settings["n_demos"], 1, "None: all the episodes demo_path makes"
@@ -68,10 +65,12 @@ def checked_demo_kwargs(demo_kwargs: Mapping[str, Any]) -> dict[str, Any]:
         settings["demo_share"] = as_float("demo_kwargs['demo_share']", settings["demo_share"], 0.0, 1.0)
         settings["bc_coef"] = as_float("demo_kwargs['bc_coef']", settings["bc_coef"], 0.0, reason="it weighs a loss")
         settings["rl_coef"] = as_float("demo_kwargs['rl_coef']", settings["rl_coef"], 0.0, reason="it weighs a loss")
+        if not isinstance(settings["q_filter"], (bool, np.bool_)):
+            raise InvalidSetting("q_filter", f"demo_kwargs['q_filter'] must be True or False, got {settings['q_filter']!r}")
     except InvalidSetting as error:
         # The parameter is demo_kwargs: load names it in its advice (load(path, demo_kwargs=...)).
         raise InvalidSetting("demo_kwargs", str(error)) from None
-    if settings["normalize_from_demos"] and settings["demo_path"] is None:
+    if settings.get("normalize_from_demos") and settings["demo_path"] is None:
         raise InvalidSetting(
             "demo_kwargs",
             "demo_kwargs['normalize_from_demos']=True scales observations by the demonstrations' states: give "

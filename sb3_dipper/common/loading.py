@@ -46,6 +46,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_dipper.common.deprecation import (
     DeprecatedAttribute,
     MovedParameter,
+    completed_groups,
     fold_saved_parameters,
     move_deprecated_parameters,
     taking_deprecated_parameters,
@@ -265,6 +266,13 @@ class CheckedLoading(BaseAlgorithm):
     # Constructor parameters that moved into a dict parameter, by their old names (:mod:`sb3_dipper.common.deprecation`).
     deprecated_parameters: ClassVar[Mapping[str, MovedParameter]] = {}
 
+    @classmethod
+    def setting_groups(cls) -> set[str]:
+        """The dict parameters whose keys are settings of their own (``demo_kwargs``; those that took deprecated
+        parameters in): one given to ``load`` changes the keys it names of the saved one, and a trial of the zoo's
+        tuning those of the YAML entry's."""
+        return {moved.group for moved in cls.deprecated_parameters.values()}
+
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Let the class's constructor take its deprecated parameters (out of its signature), and give its models their
         old attributes, which warn."""
@@ -362,12 +370,9 @@ class CheckedLoading(BaseAlgorithm):
         """``load``'s keywords with the deprecated parameters moved into their groups (with a warning), each group given
         on top of the saved one: ``load(path, bc_coef=0.01)`` changes that key only."""
         kwargs = move_deprecated_parameters(cls.__name__, cls.deprecated_parameters, kwargs)
-        for group in {moved.group for moved in cls.deprecated_parameters.values()} & kwargs.keys():
-            saved = fields.get(group)
-            # A group holding objects that are no JSON was pickled whole; it is replaced, as SB3 replaces any setting.
-            if isinstance(saved, dict) and ":serialized:" not in saved:
-                kwargs[group] = {**saved, **(kwargs[group] or {})}
-        return kwargs
+        # A group holding objects that are no JSON was pickled whole; it is replaced, as SB3 replaces any setting.
+        readable = {name: value for name, value in fields.items() if not (isinstance(value, dict) and ":serialized:" in value)}
+        return completed_groups(cls.setting_groups(), kwargs, readable)
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""

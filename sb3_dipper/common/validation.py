@@ -5,7 +5,7 @@ from __future__ import annotations
 import difflib
 import inspect
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -94,6 +94,16 @@ def check_keyword_arguments(algorithm: type, kwargs: Mapping[str, Any], source: 
                 hint = f"did you mean {close[0]!r}?"
             origin = f" (from {source})" if source else ""
             raise TypeError(f"{algorithm.__name__} got an unexpected keyword argument {name!r}{origin}; {hint}")
+
+
+def check_dict_keys(parameter: str, given: Iterable[str], keys: Collection[str]) -> None:
+    """Refuse a key of the dict parameter ``parameter`` (``demo_kwargs``) that is none of ``keys``: a ``TypeError``
+    naming the parameter and the closest key, or every key when none is close."""
+    for key in given:
+        if key not in keys:
+            close = difflib.get_close_matches(key, keys, n=1)
+            hint = f"did you mean {close[0]!r}?" if close else f"its keys are {', '.join(keys)}"
+            raise TypeError(f"{parameter} got an unexpected key {key!r}; {hint}")
 
 
 def sparse_goal_reached_fn(venv: VecEnv) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

@@ -13,6 +13,7 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor
@@ -45,6 +46,7 @@ from sb3_dipper.common.validation import (
     as_choice,
     as_float,
     as_int,
+    check_dict_keys,
     check_keyword_arguments,
     sparse_goal_reached_fn,
 )
@@ -55,6 +57,52 @@ SelfDIPPER = TypeVar("SelfDIPPER", bound="DIPPER")
 
 VALUE_REGULARIZERS = ("paper", "score", "reparam")
 REFERENCE_POLICIES = ("uniform", "averaged")
+
+#: DIPPER's switches beyond the paper (its ``switch_kwargs``, :ref:`switches`), with their defaults: the paper's DIPPER.
+DEFAULT_SWITCH_KWARGS: dict[str, Any] = dict(
+    nll_coef=0.0,
+    label_smoothing=0.0,
+    reference="uniform",
+    hindsight_actions=False,
+    truncate_at_goal=False,
+    goal_subgoal_prob=0.0,
+    value_reg="paper",
+    value_score_coef=1e-6,
+)
+
+
+def checked_switch_kwargs(switch_kwargs: Mapping[str, Any]) -> dict[str, Any]:
+    """``switch_kwargs`` with the defaults (:data:`DEFAULT_SWITCH_KWARGS`) of the keys not given, numbers converted
+    (``"1e-2"`` from the zoo becomes ``0.01``) and checked: an unknown key is a ``TypeError`` naming the closest key
+    (or all of them), a value out of range an :class:`~sb3_dipper.common.validation.InvalidSetting` naming
+    ``switch_kwargs['key']``.
+
+    :param switch_kwargs: DIPPER's ``switch_kwargs``
+    """
+    check_dict_keys("switch_kwargs", switch_kwargs, DEFAULT_SWITCH_KWARGS)
+    settings = {**DEFAULT_SWITCH_KWARGS, **switch_kwargs}
+    try:
+        settings["nll_coef"] = as_float(
+            "switch_kwargs['nll_coef']", settings["nll_coef"], 0.0, reason="it weighs a loss; 0 turns it off"
+        )
+        settings["label_smoothing"] = as_float(
+            "switch_kwargs['label_smoothing']",
+            settings["label_smoothing"],
+            0.0,
+            0.5,
+            high_open=True,
+            reason="0.5 makes every label a tie",
+        )
+        settings["reference"] = as_choice("switch_kwargs['reference']", settings["reference"], REFERENCE_POLICIES)
+        settings["goal_subgoal_prob"] = as_float("switch_kwargs['goal_subgoal_prob']", settings["goal_subgoal_prob"], 0.0, 1.0)
+        settings["value_reg"] = as_choice("switch_kwargs['value_reg']", settings["value_reg"], VALUE_REGULARIZERS)
+        settings["value_score_coef"] = as_float(
+            "switch_kwargs['value_score_coef']", settings["value_score_coef"], 0.0, reason="0 turns the value score off"
+        )
+    except InvalidSetting as error:
+        # The parameter is switch_kwargs: load names it in its advice (load(path, switch_kwargs=...)).
+        raise InvalidSetting("switch_kwargs", str(error)) from None
+    return settings
 
 
 class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
@@ -71,33 +119,29 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     :param option_steps: K, primitive steps per subgoal
     :param subgoal_space: subgoal space (default: the env's declared one)
     :param beta: beta, the weight of the policy log-ratios in the DPO logit (Eq. 9)
-    :param value_reg_coef: lambda, the weight of the lower-value regulariser of ``value_reg="paper"`` and
-        ``"reparam"`` (0: DIPPER-No-V)
-    :param value_steps: m, lower critic gradient steps between ``V^L`` and ``V^L_m`` (``value_reg="paper"``)
-    :param value_reg: how lambda enters: ``"paper"`` (Eq. 9: ``-lambda * sum_t (V^L - V^L_m)`` in the DPO logit),
-        ``"score"`` (the PIPER code: ``value_score_coef * sum_t V^L(s_t, g_t)`` added to the preference score at
-        labelling), or ``"reparam"`` (``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss, a differentiable
-        feasibility term)
-    :param value_score_coef: the weight of ``sum_t V^L(s_t, g_t)`` in the preference score when ``value_reg="score"``
-        (in place of lambda). Default: the PIPER code's ``q_reg`` scale, 1e-6. Each lower value is as low as
-        ``-1 / (1 - gamma)``, about -20, and the sum runs over the trajectory, so at lambda's 0.1 the critic, not the
-        primitive-in-the-loop count, would decide the labels; at 1e-6 the value only breaks ties
+    :param value_reg_coef: lambda, the weight of the lower-value regulariser (Eq. 9; 0: DIPPER-No-V); how it enters is
+        ``switch_kwargs["value_reg"]``
+    :param value_steps: m, lower critic gradient steps between ``V^L`` and ``V^L_m``
     :param n_preference_pairs: the label budget: pairs labelled over the whole run, spread over training
     :param pairs_per_batch: preference pairs per higher-level gradient step
     :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
     :param random_subgoal_prob: probability of a uniformly random subgoal during training (exploration)
-    :param goal_subgoal_prob: probability that a training subgoal is the env's goal itself (beyond the paper; 0: off):
-        the higher-level trajectories then include the lower level driven by the goal, so the labelled pairs compare the
-        policy's subgoals with the goal's wherever both occur; evaluation and :meth:`predict` are unchanged
     :param high_gradient_steps: higher-level gradient steps per option
-    :param nll_coef: weight of the preferred trajectory's negative log-likelihood added to the loss (RPO-style; 0: off)
-    :param label_smoothing: epsilon of conservative DPO (beyond the paper): each strict label counts as flipped with
-        probability epsilon, which bounds the DPO margin on deterministic labels (0: the paper)
-    :param reference: the reference policy of the DPO logit: ``"uniform"`` (the paper: no reference policy) or
-        ``"averaged"`` (beyond the paper: the Polyak average of the trained actor, a slowly moving previous policy that
-        keeps each update near the last; needs ``policy_kwargs`` ``acting_tau`` below 1)
-    :param hindsight_actions: train on the subgoal each option actually reached instead of the one proposed
-    :param truncate_at_goal: end each pair when the first of its trajectories reaches the goal (earliest arrival wins)
+    :param switch_kwargs: the switches beyond the paper (:ref:`switches`; default: none on, the paper's DIPPER), a dict
+        with the keys ``nll_coef`` (weight of the preferred trajectory's negative log-likelihood added to the loss,
+        RPO-style; 0: off), ``label_smoothing`` (epsilon of conservative DPO: each strict label counts as flipped with
+        probability epsilon; 0: off), ``reference`` (the DPO logit's reference policy: ``"uniform"``, the paper's, or
+        ``"averaged"``, the Polyak average of the trained actor, which needs ``policy_kwargs`` ``acting_tau`` below 1),
+        ``hindsight_actions`` (train on the subgoal each option reached instead of the one proposed),
+        ``truncate_at_goal`` (end each pair when the first of its trajectories reaches the goal), ``goal_subgoal_prob``
+        (probability that a training subgoal is the env's goal itself; 0: off), ``value_reg`` (how lambda enters:
+        ``"paper"``, Eq. 9's ``-lambda * sum_t (V^L - V^L_m)`` in the DPO logit; ``"score"``, the PIPER code's
+        ``value_score_coef * sum_t V^L(s_t, g_t)`` added to the preference score at labelling; ``"reparam"``,
+        ``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss) and ``value_score_coef`` (the weight of that sum
+        with ``"score"``, in place of lambda; default 1e-6, the PIPER code's ``q_reg``, so that the value only breaks
+        ties), for example ``dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True)``
+        (:data:`DEFAULT_SWITCH_KWARGS`); ``model.switch_kwargs`` holds them all, and a key changed there acts from the
+        next :meth:`learn`. Each key is also taken as a parameter of its own, deprecated
     :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
         :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
         ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
@@ -150,6 +194,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     # Saved with the model (load() restores it before _setup_model), with its graph, so that a loaded model plans as it did.
     planner: SubgoalPlanner
     # The planner's settings were parameters of their own; None stood for the planner's default.
+    # The switches beyond the paper were parameters of their own too.
     deprecated_parameters: ClassVar[Mapping[str, MovedParameter]] = {
         **HierarchicalAlgorithm.deprecated_parameters,
         **{
@@ -162,7 +207,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 ("planning_value_threshold", "value_threshold"),
             )
         },
+        **{name: MovedParameter("switch_kwargs", name) for name in DEFAULT_SWITCH_KWARGS},
     }
+    # The switches checked and completed with their defaults (a model saved before a switch existed loads with it).
+    switch_kwargs: dict[str, Any]
     subgoal_graph = DeprecatedAttribute("planner", "graph")
     # The lower update count when the lower critic was last copied into the snapshot V^L_m (saved with the model, as
     # the snapshot is), so that a loaded model refreshes the snapshot on the schedule it had.
@@ -178,19 +226,12 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         beta: float = 0.1,
         value_reg_coef: float = 0.1,
         value_steps: int = 15,
-        value_reg: str = "paper",
-        value_score_coef: float = 1e-6,
         n_preference_pairs: int = 10_000,
         pairs_per_batch: int = 64,
         hindsight_goal_prob: float = 0.8,
         random_subgoal_prob: float = 0.2,
-        goal_subgoal_prob: float = 0.0,
         high_gradient_steps: int = 1,
-        nll_coef: float = 0.0,
-        label_smoothing: float = 0.0,
-        reference: str = "uniform",
-        hindsight_actions: bool = False,
-        truncate_at_goal: bool = False,
+        switch_kwargs: dict[str, Any] | None = None,
         planner_kwargs: dict[str, Any] | None = None,
         trajectory_buffer_size: int = 5000,
         preference_source: PreferenceSourceSpec = None,
@@ -249,18 +290,11 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.beta = beta
         self.value_reg_coef = value_reg_coef
         self.value_steps = value_steps
-        self.value_reg = value_reg
-        self.value_score_coef = value_score_coef
         self.n_preference_pairs = n_preference_pairs
         self.pairs_per_batch = pairs_per_batch
         self.hindsight_goal_prob = hindsight_goal_prob
-        self.goal_subgoal_prob = goal_subgoal_prob
         self.high_gradient_steps = high_gradient_steps
-        self.nll_coef = nll_coef
-        self.label_smoothing = label_smoothing
-        self.reference = reference
-        self.hindsight_actions = hindsight_actions
-        self.truncate_at_goal = truncate_at_goal
+        self.switch_kwargs = dict(switch_kwargs or {})
         self.planner_kwargs = dict(planner_kwargs or {})
         self.trajectory_buffer_size = trajectory_buffer_size
         self.preference_source = preference_source
@@ -269,21 +303,14 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _check_settings(self) -> None:
         super()._check_settings()
-        self.value_reg = as_choice("value_reg", self.value_reg, VALUE_REGULARIZERS)
         self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
         self.beta = as_float("beta", self.beta, 0.0, low_open=True, reason="beta <= 0 trains toward the rejected trajectories")
         self.value_reg_coef = as_float("value_reg_coef", self.value_reg_coef, 0.0, reason="0 turns the value term off")
-        self.value_score_coef = as_float("value_score_coef", self.value_score_coef, 0.0, reason="0 turns the value score off")
         self.value_steps = as_int("value_steps", self.value_steps, 0)
         self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
         self.pairs_per_batch = as_int("pairs_per_batch", self.pairs_per_batch, 1)
         self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
-        self.nll_coef = as_float("nll_coef", self.nll_coef, 0.0, reason="it weighs a loss; 0 turns it off")
-        self.label_smoothing = as_float(
-            "label_smoothing", self.label_smoothing, 0.0, 0.5, high_open=True, reason="0.5 makes every label a tie"
-        )
-        self.reference = as_choice("reference", self.reference, REFERENCE_POLICIES)
-        self.goal_subgoal_prob = as_float("goal_subgoal_prob", self.goal_subgoal_prob, 0.0, 1.0)
+        self.switch_kwargs = checked_switch_kwargs(self.switch_kwargs)
         self.trajectory_buffer_size = as_int(
             "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
         )
@@ -294,35 +321,44 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.subgoal_space.unit_box, self.lr_schedule, **self.policy_kwargs
         ).to(self.device)
-        goal_reached, labeler = None, None
+        self._goal_reached, labeler = None, None
         if self.env is not None:  # a model without an env labels nothing until it gets one
-            goal_reached = sparse_goal_reached_fn(self.env)
-            value_score = self._pair_value_score if self.value_reg == "score" else None
+            self._goal_reached = sparse_goal_reached_fn(self.env)
             labeler = preference_labeler(
                 self.preference_source,
                 self.env,
                 self.subgoal_space,
                 self.seed,
-                value_score,
-                goal_reached,
+                self._pair_value_score,
+                self._goal_reached,
                 label_budget=self.n_preference_pairs,
             )
+        self._pair_sampler = TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space)
         self.preference_pipeline = PreferencePipeline(
             self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
             self.n_preference_pairs,
-            TrajectoryPairSampler(
-                self.hindsight_goal_prob, self.subgoal_space, goal_reached if self.truncate_at_goal else None
-            ),
+            self._pair_sampler,
             labeler,
         )
         self.planner.setup(self.subgoal_space)
         self._reference_log_prob = uniform_log_prob(self.subgoal_space.dim)
-        if self.reference == "averaged" and self.policy.averaged_actor is None:
-            raise ValueError("reference='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 (e.g. 0.05)")
+        self._apply_switches()
         # A loaded model puts the saved snapshot back (set_parameters) and keeps its _value_snapshot_updates.
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
         # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
         self.last_planned = np.zeros(self.n_envs, dtype=bool)
+
+    def _apply_switches(self) -> None:
+        """Check ``switch_kwargs`` and set the part of the model built from them (the pairs' truncation at the goal), so
+        that a switch changed in ``model.switch_kwargs`` after the model was built acts from the next :meth:`learn`;
+        training reads the others from ``switch_kwargs`` where it uses them."""
+        self.switch_kwargs = checked_switch_kwargs(self.switch_kwargs)
+        self._pair_sampler.goal_reached = self._goal_reached if self.switch_kwargs["truncate_at_goal"] else None
+        if self.switch_kwargs["reference"] == "averaged" and self.policy.averaged_actor is None:
+            raise ValueError(
+                "switch_kwargs['reference']='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 "
+                "(e.g. 0.05)"
+            )
 
     def _check_planner(self) -> None:
         """Build :attr:`planner` from ``planner_kwargs``, checked as the constructor checks them. A loaded model's planner
@@ -349,6 +385,17 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     def _option_metric_keys(self) -> tuple[str, ...]:
         planned = ("planned_share",) if self.planner.proposes_subgoals else ()
         return (*super()._option_metric_keys(), *planned)
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        self._apply_switches()
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def learn(
         self: SelfDIPPER,
@@ -385,8 +432,9 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.last_planned = np.zeros(self.n_envs, dtype=bool)  # the warm-up's uniform subgoals are nobody's plan
         actions = super()._training_high_level_actions(observation)
         self.last_planned &= ~self.last_random_subgoals  # a random subgoal replaced the planner's waypoint
-        if self.goal_subgoal_prob > 0.0 and self.num_timesteps >= self.learning_starts:
-            goal_rows = (self._rng.random(self.n_envs) < self.goal_subgoal_prob) & ~self.last_random_subgoals
+        goal_subgoal_prob = self.switch_kwargs["goal_subgoal_prob"]
+        if goal_subgoal_prob > 0.0 and self.num_timesteps >= self.learning_starts:
+            goal_rows = (self._rng.random(self.n_envs) < goal_subgoal_prob) & ~self.last_random_subgoals
             actions[goal_rows] = self._subgoal_actions(observation["desired_goal"])[goal_rows]
             self.last_planned &= ~goal_rows
         if self.planner.proposes_subgoals and self.num_timesteps >= self.learning_starts:
@@ -441,6 +489,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.actor.optimizer)
         dpo_losses, nll_losses, accuracies, value_gaps, tie_shares = [], [], [], [], []
+        switches = self.switch_kwargs
+        value_term = switches["value_reg"] if self.value_reg_coef != 0.0 else None
         for _ in range(self.high_gradient_steps):
             pairs = self.preferences.sample(self.pairs_per_batch, self._rng)
             observations, actions, mask, labels = self._pair_tensors(pairs)
@@ -448,21 +498,21 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             # Eq. 9: log pi^H of every stored higher-level action, minus lambda * (V^L - V^L_m) per step. Every term is
             # masked, so the networks see only the real steps (on pick-and-place about a fifth of the padded (2, B, T) batch).
             log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
-            gaps = self._value_gaps(pairs, mask) if self.value_reg == "paper" and self.value_reg_coef != 0.0 else None
+            gaps = self._value_gaps(pairs, mask) if value_term == "paper" else None
             reference = self._reference_log_probs(observations, actions, mask)
             dpo, logits = dipper_loss(
-                log_probs, mask, labels, self.beta, reference, gaps, self.value_reg_coef, self.label_smoothing
+                log_probs, mask, labels, self.beta, reference, gaps, self.value_reg_coef, switches["label_smoothing"]
             )
             loss = dpo
 
             # Optional: the preferred side's likelihood (RPO-style), against likelihood displacement.
-            if self.nll_coef > 0.0:
+            if switches["nll_coef"] > 0.0:
                 nll = preferred_nll(log_probs, mask, labels)
-                loss = loss + self.nll_coef * nll
+                loss = loss + switches["nll_coef"] * nll
                 nll_losses.append(nll.item())
 
             # Optional: push proposals toward subgoals the lower level values (value_reg="reparam").
-            if self.value_reg == "reparam" and self.value_reg_coef != 0.0:
+            if value_term == "reparam":
                 loss = loss - self.value_reg_coef * self._reparameterised_low_value(pairs, observations).mean()
 
             self.policy.actor.optimizer.zero_grad()
@@ -516,13 +566,13 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self, observations: dict[str, th.Tensor], actions: th.Tensor, mask: th.Tensor
     ) -> float | th.Tensor:
         """The reference policy's per-step log-density: the uniform constant, or the averaged actor's ``(2, B, T)``."""
-        if self.reference == "uniform":
+        if self.switch_kwargs["reference"] == "uniform":
             return self._reference_log_prob
         with th.no_grad():
             return at_real_steps(self.policy.averaged_log_prob(observations, actions), mask)
 
     def _pair_actions(self, pairs: TrajectoryPairs) -> np.ndarray:
-        return pairs.reached_actions if self.hindsight_actions else pairs.actions
+        return pairs.reached_actions if self.switch_kwargs["hindsight_actions"] else pairs.actions
 
     def _pair_tensors(self, pairs: TrajectoryPairs) -> tuple[dict[str, th.Tensor], th.Tensor, th.Tensor, th.Tensor]:
         """(Normalised) observations and actions of the real steps of both trajectories, one row per step in the order
@@ -569,10 +619,14 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             self._value_snapshot_updates = self.lower._n_updates
 
     def _pair_value_score(self, pairs: TrajectoryPairs) -> np.ndarray:
-        """PIPER's label-time term: ``value_score_coef * sum_t V^L(s_t, g_t)`` for each trajectory, shape ``(2, B)``."""
+        """What the labeller adds to each trajectory's primitive-in-the-loop score, shape ``(2, B)``: with
+        ``switch_kwargs["value_reg"] == "score"`` PIPER's label-time term ``value_score_coef * sum_t V^L(s_t, g_t)``,
+        else 0 (read at labelling, so that the switch acts whenever it is set)."""
+        if self.switch_kwargs["value_reg"] != "score":
+            return np.zeros(pairs.mask.shape[:2])
         with th.no_grad():
             values = sac_state_value(self.lower, self._pair_low_obs(pairs, pairs.actions)).cpu().numpy()
-        return self.value_score_coef * (values.reshape(pairs.mask.shape) * pairs.mask).sum(axis=-1)
+        return self.switch_kwargs["value_score_coef"] * (values.reshape(pairs.mask.shape) * pairs.mask).sum(axis=-1)
 
     def _reparameterised_low_value(self, pairs: TrajectoryPairs, observations: dict[str, th.Tensor]) -> th.Tensor:
         """``V^L(s, g(u))`` for ``u ~ pi^H(.|s, g*)`` (reparameterised, so it has a gradient), at the pairs' real steps.
@@ -598,7 +652,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         super().save(path, exclude, include)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "last_planned"]
+        # The pair sampler and the goal test are rebuilt with the model (the goal test holds the env).
+        return [*super()._excluded_save_params(), "last_planned", "_pair_sampler", "_goal_reached"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()

@@ -24,8 +24,9 @@ Differences from the authors' code, and why:
 
 - The SAC target uses ``r_phi(s_t, g, u_t)`` of the sampled transition from the current reward model; the authors'
   graph feeds a Polyak-averaged copy of it the *next* state and the policy's next action (a quirk, authors-code.md 5.3).
-- ``V^L(s, g) = min_i Q_i(s, g, a) - alpha log pi(a | s, g)`` with ``a ~ pi^L``, as DIPPER's ``value_reg="score"``
-  (the authors use ``Q_1`` at a sampled action); at the default ``lambda = 1e-6`` either one only breaks ties.
+- ``V^L(s, g) = min_i Q_i(s, g, a) - alpha log pi(a | s, g)`` with ``a ~ pi^L``, as DIPPER's
+  ``switch_kwargs["value_reg"] = "score"`` (the authors use ``Q_1`` at a sampled action); at the default
+  ``lambda = 1e-6`` either one only breaks ties.
 - Q-targets are not clipped to ``[-1 / (1 - gamma), 0]``, as in HIER.
 """
 

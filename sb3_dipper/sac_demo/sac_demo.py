@@ -7,14 +7,14 @@ train the critics, and the actor loss is
 
     rl_coef * SAC's actor loss  +  bc_coef * sum_{demo, Q-filter} ||mu(s) - a_demo||^2
 
-The demonstrations are those the hierarchies take (``demo_path``, ``n_demos``), relabelled as theirs are (with
+The demonstrations and the cloning settings are those the hierarchies take (``demo_kwargs``: ``demo_path``,
+``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter``), the demonstrations relabelled as theirs are (with
 probability 0.8 the goal of a demo step is the goal achieved after a uniformly drawn later step of its episode,
 otherwise the demonstration's own goal), with the env's own goals and reward where a lower level has subgoals
 (:class:`~sb3_dipper.common.imitation.EnvGoals`). A comparison row of SACDemo against SAC+HER shows what the
-demonstrations give a flat agent; against a hierarchy with the same ``demo_path`` and cloning settings, what the
-hierarchy gives.
+demonstrations give a flat agent; against a hierarchy with the same ``demo_kwargs``, what the hierarchy gives.
 
-Without ``demo_path`` SACDemo trains as SB3's ``SAC``.
+Without ``demo_kwargs["demo_path"]`` SACDemo trains as SB3's ``SAC``.
 """
 
 from __future__ import annotations
@@ -32,16 +32,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 
 from sb3_dipper.common.demonstrations import demonstrations_for
 from sb3_dipper.common.hierarchical import has_finished_episode
-from sb3_dipper.common.imitation import DemonstrationBuffer, DemoSAC, EnvGoals
+from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, DemoSAC, EnvGoals, checked_demo_kwargs
 from sb3_dipper.common.loading import CheckedLoading
-from sb3_dipper.common.validation import (
-    InvalidSetting,
-    as_float,
-    as_int,
-    as_optional_int,
-    check_flat_sac_settings,
-    policy_class_and_goal_env,
-)
+from sb3_dipper.common.validation import InvalidSetting, as_int, check_flat_sac_settings, policy_class_and_goal_env
 from sb3_dipper.sac_demo.policies import MlpPolicy, MultiInputPolicy
 
 SelfSACDemo = TypeVar("SelfSACDemo", bound="SACDemo")
@@ -50,11 +43,29 @@ SelfSACDemo = TypeVar("SelfSACDemo", bound="SACDemo")
 # without an env).
 PREDICT_ONLY_BUFFER_SIZE = 1
 
+# SACDemo's demo_kwargs keys: the hierarchies', but normalize_from_demos (scaling the inputs by the demonstrations'
+# states), which it does not have.
+SAC_DEMO_KWARGS = tuple(key for key in DEFAULT_DEMO_KWARGS if key != "normalize_from_demos")
+# The cloning settings DemoSAC's update reads as attributes of its own.
+CLONING_SETTINGS = ("demo_share", "bc_coef", "rl_coef", "q_filter")
+
+
+def _cloning_setting(key: str) -> property:
+    """DemoSAC's cloning setting ``key``, read and written in ``demo_kwargs``, where SACDemo keeps it."""
+
+    def setting(model: SACDemo) -> Any:
+        return model.demo_kwargs[key]
+
+    def set_setting(model: SACDemo, value: Any) -> None:
+        model.demo_kwargs[key] = value
+
+    return property(setting, set_setting, doc=f"``demo_kwargs[{key!r}]``")
+
 
 class SACDemo(CheckedLoading, DemoSAC):
     """SAC+HER whose actor also clones Q-filtered demonstrations, as the hierarchies' lower level does (see the module
-    docstring). Without ``demo_path``, SB3's ``SAC``. The SAC parameters are SB3's, with SB3's defaults; the
-    demonstration parameters are the hierarchies', with their defaults.
+    docstring). Without ``demo_kwargs["demo_path"]``, SB3's ``SAC``. The SAC parameters are SB3's, with SB3's defaults;
+    the demonstration settings are the hierarchies' ``demo_kwargs``, with their defaults.
 
     :param policy: ``"MlpPolicy"`` or ``"MultiInputPolicy"`` (both SAC's ``MultiInputPolicy``: goal envs are Dict)
     :param env: a goal env (Dict observations with ``observation``, ``achieved_goal``, ``desired_goal``)
@@ -71,23 +82,25 @@ class SACDemo(CheckedLoading, DemoSAC):
         demonstrations' are)
     :param replay_buffer_kwargs: its keyword arguments
     :param optimize_memory_usage: SB3's memory-efficient replay buffer variant
-    :param n_steps: SB3's n-step returns (1: none); must be 1 with ``demo_path``, whose update uses one-step targets
+    :param n_steps: SB3's n-step returns (1: none); must be 1 with a ``demo_path``, whose update uses one-step targets
     :param ent_coef: entropy coefficient (``"auto"`` learns it)
     :param target_update_interval: target network update interval (gradient steps)
     :param target_entropy: target entropy of the learned entropy coefficient
-    :param use_sde: generalized state-dependent exploration (without ``demo_path`` only: the cloning update does not
+    :param use_sde: generalized state-dependent exploration (without a ``demo_path`` only: the cloning update does not
         resample its noise)
     :param sde_sample_freq: gSDE noise resampling frequency
     :param use_sde_at_warmup: gSDE instead of uniform actions before learning starts
-    :param demo_path: demonstrations to clone: an npz file, a Minari dataset directory, ``"auto"`` for the task's single
-        default scripted demonstration or ``"auto:dart<N>"`` for N DART episodes of its scripted expert (beyond the
-        paper; :func:`~sb3_dipper.common.demonstrations.demonstrations_for`); ``None``: no cloning, SB3's SAC
-    :param n_demos: how many demonstration episodes to use, from the first (default: all N of ``"auto:dart<N>"``, the
-        one of ``"auto"``, the first episode of a file or dataset)
-    :param demo_share: fraction of each batch drawn from the demonstrations
-    :param bc_coef: weight of the behaviour-cloning loss (PIPER's lambda_2)
-    :param rl_coef: weight of SAC's actor loss while cloning (PIPER's lambda_1)
-    :param q_filter: clone only demo actions the critic values above the policy's
+    :param demo_kwargs: the demonstrations and their cloning, a dict with the hierarchies' keys (see
+        :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`) but ``normalize_from_demos``: ``demo_path``
+        (an npz file, a Minari dataset directory, ``"auto"`` for the task's single default scripted demonstration or
+        ``"auto:dart<N>"`` for N DART episodes of its scripted expert,
+        :func:`~sb3_dipper.common.demonstrations.demonstrations_for`; default ``None``: no cloning, SB3's SAC),
+        ``n_demos`` (episodes used, from the first; default: all N of ``"auto:dart<N>"``, the one of ``"auto"``, the
+        first episode of a file or dataset), ``demo_share`` (fraction of each batch drawn from the demonstrations,
+        0.125), ``bc_coef`` (weight of the behaviour-cloning loss, PIPER's lambda_2, 0.0078), ``rl_coef`` (weight of
+        SAC's actor loss while cloning, PIPER's lambda_1, 1e-3) and ``q_filter`` (clone only demo actions the critic
+        values above the policy's, ``True``), for example ``dict(demo_path="auto", bc_coef=0.02)``;
+        ``model.demo_kwargs`` holds them all (DemoSAC's attributes ``model.bc_coef``, ... read and write it)
     :param stats_window_size: window of the rollout statistics
     :param tensorboard_log: tensorboard folder
     :param policy_kwargs: keyword arguments of SAC's policy
@@ -98,6 +111,12 @@ class SACDemo(CheckedLoading, DemoSAC):
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy, "MultiInputPolicy": MultiInputPolicy}
+    # The demonstration settings, checked and completed with their defaults once the model is built.
+    demo_kwargs: dict[str, Any]
+    demo_share = _cloning_setting("demo_share")
+    bc_coef = _cloning_setting("bc_coef")
+    rl_coef = _cloning_setting("rl_coef")
+    q_filter = _cloning_setting("q_filter")
 
     def __init__(
         self,
@@ -122,12 +141,7 @@ class SACDemo(CheckedLoading, DemoSAC):
         use_sde: bool = False,
         sde_sample_freq: int = -1,
         use_sde_at_warmup: bool = False,
-        demo_path: str | None = None,
-        n_demos: int | None = None,
-        demo_share: float = 0.125,
-        bc_coef: float = 0.0078,
-        rl_coef: float = 1e-3,
-        q_filter: bool = True,
+        demo_kwargs: dict[str, Any] | None = None,
         stats_window_size: int = 100,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
@@ -137,6 +151,7 @@ class SACDemo(CheckedLoading, DemoSAC):
         _init_setup_model: bool = True,
     ) -> None:
         policy, env = policy_class_and_goal_env(self, policy, env, verbose)
+        self.demo_kwargs = dict(demo_kwargs or {})
         super().__init__(
             policy,
             env,
@@ -167,15 +182,16 @@ class SACDemo(CheckedLoading, DemoSAC):
             seed=seed,
             device=device,
             _init_setup_model=False,
-            demo_share=demo_share,
-            bc_coef=bc_coef,
-            rl_coef=rl_coef,
-            q_filter=q_filter,
+            # DemoSAC sets its cloning settings, which live in demo_kwargs: the ones given stay as they are.
+            **{key: self.demo_kwargs[key] for key in CLONING_SETTINGS if key in self.demo_kwargs},
         )
-        self.demo_path = demo_path
-        self.n_demos = n_demos
         if _init_setup_model:
             self._setup_model()
+
+    @classmethod
+    def setting_groups(cls) -> set[str]:
+        """:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`, and ``demo_kwargs`` as the hierarchies'."""
+        return {*super().setting_groups(), "demo_kwargs"}
 
     # ---------------------------------------------------------------------------------------------------- set-up
 
@@ -184,26 +200,21 @@ class SACDemo(CheckedLoading, DemoSAC):
         # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
         check_flat_sac_settings(self)
         self.n_steps = as_int("n_steps", self.n_steps, 1)
-        self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "None: all the episodes demo_path makes")
-        self.demo_share = as_float("demo_share", self.demo_share, 0.0, 1.0)
-        self.bc_coef = as_float("bc_coef", self.bc_coef, 0.0, reason="it weighs a loss")
-        self.rl_coef = as_float("rl_coef", self.rl_coef, 0.0, reason="it weighs a loss")
-        if not isinstance(self.q_filter, (bool, np.bool_)):
-            raise InvalidSetting("q_filter", f"q_filter must be True or False, got {self.q_filter!r}")
-        if self.demo_path is None:
+        self.demo_kwargs = checked_demo_kwargs(self.demo_kwargs, SAC_DEMO_KWARGS)
+        if self.demo_kwargs["demo_path"] is None:
             return
         # The cloning update (DemoSAC.train) bootstraps one step with gamma and draws no gSDE noise.
         if self.n_steps != 1:
             raise InvalidSetting(
                 "n_steps",
-                f"n_steps={self.n_steps} with demo_path: the cloning update uses one-step targets; set n_steps=1, or "
-                "leave demo_path out for SB3's SAC with n-step returns",
+                f"n_steps={self.n_steps} with a demo_path: the cloning update uses one-step targets; set n_steps=1, or "
+                "leave demo_kwargs['demo_path'] out for SB3's SAC with n-step returns",
             )
         if self.use_sde:
             raise InvalidSetting(
                 "use_sde",
-                "use_sde=True with demo_path: the cloning update does not resample gSDE noise; set use_sde=False, or "
-                "leave demo_path out for SB3's SAC with gSDE",
+                "use_sde=True with a demo_path: the cloning update does not resample gSDE noise; set use_sde=False, or "
+                "leave demo_kwargs['demo_path'] out for SB3's SAC with gSDE",
             )
 
     def _setup_model(self) -> None:
@@ -218,13 +229,15 @@ class SACDemo(CheckedLoading, DemoSAC):
                 self.device,
             )
         super()._setup_model()
-        self.demonstrations = self._demonstration_buffer() if self.demo_path is not None and self.env is not None else None
+        cloning = self.demo_kwargs["demo_path"] is not None
+        self.demonstrations = self._demonstration_buffer() if cloning and self.env is not None else None
 
     def _demonstration_buffer(self) -> DemonstrationBuffer:
-        """The first ``n_demos`` episodes of ``demo_path``, checked against the env's spaces, with their actions in the
-        policy's [-1, 1] scale and the env's own goals."""
-        assert self.env is not None and self.demo_path is not None and isinstance(self.action_space, spaces.Box)
-        demonstrations = demonstrations_for(self.demo_path, self.env, self.n_demos)
+        """The first ``n_demos`` episodes of ``demo_path`` (``demo_kwargs``), checked against the env's spaces, with their
+        actions in the policy's [-1, 1] scale and the env's own goals."""
+        demo_path = self.demo_kwargs["demo_path"]
+        assert self.env is not None and demo_path is not None and isinstance(self.action_space, spaces.Box)
+        demonstrations = demonstrations_for(demo_path, self.env, self.demo_kwargs["n_demos"])
         # Checked here, at construction: a mismatch would otherwise surface at the first update as a tensor-size error.
         demonstrations.check_spaces(self.observation_space, self.action_space)
         actions = np.clip(demonstrations.actions, self.action_space.low, self.action_space.high)
@@ -267,7 +280,7 @@ class SACDemo(CheckedLoading, DemoSAC):
             self._rebuild_keeping_parameters()
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        """SB3's SAC update, or with ``demo_path`` DemoSAC's update on replay and demonstration transitions."""
+        """SB3's SAC update, or with a ``demo_path`` DemoSAC's update on replay and demonstration transitions."""
         if isinstance(self.replay_buffer, HerReplayBuffer) and not has_finished_episode(self.replay_buffer):
             # A model resumed with an empty buffer (load or set_env) must first finish an episode: HER samples none before.
             return
@@ -276,5 +289,5 @@ class SACDemo(CheckedLoading, DemoSAC):
     # ---------------------------------------------------------------------------------------------------- saving
 
     def _excluded_save_params(self) -> list[str]:
-        # The demonstrations are read again from demo_path when the model is loaded with an env.
+        # The demonstrations are read again from demo_kwargs' demo_path when the model is loaded with an env.
         return [*super()._excluded_save_params(), "demonstrations", "_predict_only"]

@@ -57,7 +57,9 @@ from sb3_dipper.zoo.algorithms import ZOO_ALGORITHMS, hyperparams_dir
 from sb3_dipper.zoo.callbacks import CSVProgressCallback
 from sb3_dipper.zoo.exp_manager import RunControl, claim_run_folder, install_experiment_manager
 from sb3_dipper.zoo.hyperparams_opt import (
+    CONVERTERS,
     SAMPLERS,
+    dipper_trial_params,
     keep_params,
     keep_params_without_value_term,
     sample_dipper_nov_params,
@@ -90,6 +92,7 @@ from sb3_dipper.zoo.run_config import CONFIG_FILE, RecordedObject, as_recorded, 
 __all__ = [
     "COMMANDS",
     "CONFIG_FILE",
+    "CONVERTERS",
     "EVALUATIONS_FILE",
     "RESUME_FOLDER",
     "RESUME_MODEL",
@@ -108,6 +111,7 @@ __all__ = [
     "command_parser",
     "continue_evaluations",
     "differing_hyperparameters",
+    "dipper_trial_params",
     "drop_episodes_after",
     "hyperparams_dir",
     "keep_params",
@@ -149,8 +153,7 @@ def register(control: RunControl | None = None) -> None:
     gym.register_envs(gymnasium_robotics)
     rl_zoo3.ALGOS.update(ZOO_ALGORITHMS)
     HYPERPARAMS_SAMPLER.update(SAMPLERS)
-    HYPERPARAMS_CONVERTER.update({name: keep_params for name in SAMPLERS})  # type: ignore[misc]
-    HYPERPARAMS_CONVERTER["dipper_nov"] = keep_params_without_value_term  # type: ignore[assignment]
+    HYPERPARAMS_CONVERTER.update(CONVERTERS)  # type: ignore[arg-type]
     # DAC (SAC with a learned reward) and SACDemo (SAC with cloning) take the zoo's own SAC search space and converter.
     for name in ("dac", "sac_demo"):
         HYPERPARAMS_SAMPLER[name] = HYPERPARAMS_SAMPLER["sac"]

@@ -11,10 +11,12 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_dipper.common.deprecation import completed_groups
 from sb3_dipper.labelling.training_page import start_label_page
 from sb3_dipper.zoo.resume import (
     RESUME_FOLDER,
@@ -27,6 +29,12 @@ from sb3_dipper.zoo.resume import (
     remove_resume_checkpoint,
     set_aside_part,
 )
+
+if TYPE_CHECKING:
+    import optuna
+    from rl_zoo3.exp_manager import ExperimentManager as _ExperimentManager
+else:  # rl-zoo3 is imported only when the experiment manager is installed (it patches gymnasium's TimeLimit)
+    _ExperimentManager = object
 
 
 def claim_run_folder(log_path: str, env_name: str, run_id: int, suffix: str = "") -> str:
@@ -81,6 +89,57 @@ class RunControl:
         recorded_evaluations(self.resume)
 
 
+def yaml_entry(config: str, env_id: str) -> dict[str, Any] | None:
+    """The entry rl-zoo3 reads for ``env_id`` from the hyperparameter file ``config`` (the env's own, else
+    ``default``); ``None`` where ``config`` is no YAML file."""
+    if not config.endswith((".yml", ".yaml")):
+        return None
+    with open(config) as file:
+        entries = yaml.safe_load(file)
+    return entries.get(env_id, entries.get("default", {}))
+
+
+class TrialsKeepTheEntrysGroups(_ExperimentManager):
+    """rl-zoo3's experiment manager whose Optuna trials change only the keys they sample of a dict whose keys are
+    settings of their own (:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`, DIPPER's
+    ``switch_kwargs``; :func:`~sb3_dipper.common.deprecation.completed_groups`).
+
+    rl-zoo3 sets a trial's hyperparameters over the entry's, a dict over the entry's whole dict: a trial sampling
+    ``switch_kwargs["nll_coef"]`` would turn the entry's other switches off, where it changed ``nll_coef`` alone when
+    the switches were parameters. Here a sampled trial (``-optimize``) and a stored one (``--trial-id``) keep them.
+    """
+
+    def hyperparameters_optimization(self) -> None:
+        from rl_zoo3.hyperparams_opt import HYPERPARAMS_SAMPLER
+
+        sampler = HYPERPARAMS_SAMPLER[self.algo]
+
+        def sampler_keeping_the_entrys_groups(
+            trial: optuna.Trial, n_actions: int, n_envs: int, additional_args: dict
+        ) -> dict[str, Any]:
+            sampled = sampler(trial, n_actions, n_envs, additional_args)
+            return completed_groups(self._setting_groups(), sampled, self._hyperparams)
+
+        HYPERPARAMS_SAMPLER[self.algo] = sampler_keeping_the_entrys_groups
+        try:
+            super().hyperparameters_optimization()
+        finally:
+            HYPERPARAMS_SAMPLER[self.algo] = sampler
+
+    def load_trial(self, storage: str, study_name: str, trial_id: int | None = None, convert: bool = True) -> dict[str, Any]:
+        params = super().load_trial(storage, study_name, trial_id, convert)
+        entry = yaml_entry(self.config, self.env_name.gym_id)
+        return params if not convert or entry is None else completed_groups(self._setting_groups(), params, entry)
+
+    def _setting_groups(self) -> set[str]:
+        """The algorithm's dict parameters given key by key (:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`;
+        none for SB3's own algorithms)."""
+        from rl_zoo3.utils import ALGOS
+
+        algorithm = ALGOS[self.algo]
+        return algorithm.setting_groups() if hasattr(algorithm, "setting_groups") else set()
+
+
 def install_experiment_manager(control: RunControl | None = None) -> None:
     """Make rl-zoo3's train create each run's folder with :func:`claim_run_folder` and obey ``control``.
 
@@ -92,7 +151,7 @@ def install_experiment_manager(control: RunControl | None = None) -> None:
 
     run_control = control or RunControl()
 
-    class OwnRunFolderExperimentManager(ExperimentManager):
+    class OwnRunFolderExperimentManager(TrialsKeepTheEntrysGroups, ExperimentManager):
         """rl-zoo3's experiment manager whose run folder is claimed exclusively when it is created, and which pauses
         and resumes runs (:class:`RunControl`)."""
 

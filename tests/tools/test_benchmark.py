@@ -303,13 +303,13 @@ def test_overrides_become_the_zoo_s_flags():
     args = argparse.Namespace(
         eval_freq=150, eval_episodes=20, n_eval_envs=None, n_timesteps=None, pause_after_minutes=None, save_freq=None
     )
-    args.set = ["planning='off'", "low_policy_kwargs=dict(net_arch=[16])", "nll_coef=0.0"]
+    args.set = ["planning='off'", "low_policy_kwargs=dict(net_arch=[16])", "switch_kwargs=dict(nll_coef=0.0)"]
     args.env_kwargs = ["max_episode_steps=50"]
     flags = benchmark.zoo_flags(args)
     assert flags[:6] == ["--eval-freq", "150", "--eval-episodes", "20", "--n-eval-envs", "10"]
     assert flags[6:] == [
         "--env-kwargs", "max_episode_steps:50",
-        "-params", "planning:'off'", "low_policy_kwargs:dict(net_arch=[16])", "nll_coef:0.0",
+        "-params", "planning:'off'", "low_policy_kwargs:dict(net_arch=[16])", "switch_kwargs:dict(nll_coef=0.0)",
     ]  # fmt: skip
     args.pause_after_minutes = 80.0
     assert benchmark.zoo_flags(args)[6:8] == ["--pause-after-minutes", "80.0"]

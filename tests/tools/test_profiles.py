@@ -11,6 +11,7 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS
+from sb3_dipper.dipper import DEFAULT_SWITCH_KWARGS
 from sb3_dipper.zoo import ZOO_ALGORITHMS, hyperparams_dir
 from tests.tools.test_zoo import PAPER_TASKS
 from zoo_scripts.configs import load_entry, make_model
@@ -113,7 +114,7 @@ def test_the_random_push_profile_clones_two_hundred_dart_episodes(tmp_path, monk
     """The measured random push configuration, with the fixed tasks' switches."""
     model, env, n_timesteps = dart_profile("FetchPush-v4", 200, monkeypatch, tmp_path)
     assert n_timesteps == 640_000
-    assert model.hindsight_actions and model.planner.mode == "subgoal"
+    assert model.switch_kwargs["hindsight_actions"] and model.planner.mode == "subgoal"
     env.close()
 
 
@@ -150,22 +151,34 @@ def test_paper_scale_files_weigh_behaviour_cloning_as_the_authors(algo):
         assert settings["bc_coef"] == bc_coef, (algo, env_id)
 
 
-def test_an_entry_in_the_form_before_demo_kwargs_builds_the_same_model_with_a_warning(tmp_path):
-    """The YAML files of before (the lower level's demonstration settings as keys of their own), and the zoo's
-    ``-params bc_coef:...`` on top of an entry in the new form, still work."""
+def test_an_entry_in_the_form_before_demo_kwargs_and_switch_kwargs_builds_the_same_model_with_a_warning(tmp_path):
+    """The YAML files of before (the lower level's demonstration settings and DIPPER's switches as keys of their own),
+    and the zoo's ``-params bc_coef:...`` or ``nll_coef:...`` on top of an entry in the new form, still work."""
     new_form = "  demo_kwargs: {demo_path: 'auto', bc_coef: 0.02}\n"
+    new_switches = "  switch_kwargs: {nll_coef: 1.0, hindsight_actions: True, truncate_at_goal: True}\n"
     text = (hyperparams_dir() / "dipper.yml").read_text()
-    assert new_form in text
-    (tmp_path / "dipper.yml").write_text(text.replace(new_form, "  demo_path: 'auto'\n  bc_coef: 0.02\n"))
+    assert new_form in text and new_switches in text
+    text = text.replace(new_form, "  demo_path: 'auto'\n  bc_coef: 0.02\n")
+    (tmp_path / "dipper.yml").write_text(
+        text.replace(new_switches, "  nll_coef: 1.0\n  hindsight_actions: True\n  truncate_at_goal: True\n")
+    )
     overrides = dict(buffer_size=1000)
     old_form = r"demo_path, bc_coef are deprecated: pass demo_kwargs=\{'demo_path': 'auto', 'bc_coef': 0.02\}"
-    with pytest.warns(DeprecationWarning, match=old_form):
+    old_switches = r"nll_coef, hindsight_actions, truncate_at_goal are deprecated: pass switch_kwargs=\{'nll_coef': 1.0, "
+    with pytest.warns(DeprecationWarning, match=old_form), pytest.warns(DeprecationWarning, match=old_switches):
         old, old_env, _ = make_model("dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides=overrides, hyperparams=tmp_path)
     new, new_env, _ = make_model("dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides=overrides)
     assert old.demo_kwargs == new.demo_kwargs and new.demo_kwargs["bc_coef"] == old.lower.bc_coef == 0.02
+    assert old.switch_kwargs == new.switch_kwargs and new.switch_kwargs["truncate_at_goal"]
     with pytest.warns(DeprecationWarning, match=r"bc_coef is deprecated: pass demo_kwargs=\{'bc_coef': 0.5\} instead"):
         overridden, env, _ = make_model("dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides={**overrides, "bc_coef": 0.5})
     assert overridden.demo_kwargs == {**new.demo_kwargs, "bc_coef": 0.5}
+    with pytest.warns(DeprecationWarning, match=r"nll_coef is deprecated: pass switch_kwargs=\{'nll_coef': 0.0\} instead"):
+        no_nll, no_nll_env, _ = make_model(
+            "dipper", "FetchPickAndPlaceFixed-v0", seed=0, overrides={**overrides, "nll_coef": 0.0}
+        )
+    assert no_nll.switch_kwargs == {**new.switch_kwargs, "nll_coef": 0.0}
+    no_nll_env.close()
     for venv in (old_env, new_env, env):
         venv.close()
 
@@ -174,14 +187,11 @@ CLONING_SETTINGS = ("demo_path", "n_demos", "demo_share", "bc_coef", "rl_coef", 
 
 
 def cloning_settings(algo: str, env_id: str, directory: Path) -> dict:
-    """The demonstration and cloning settings an entry builds its model with, the constructor's defaults included: a
-    hierarchy's ``demo_kwargs``, the flat SACDemo's parameters of their own."""
-    entry = load_entry(algo, env_id, directory)
-    if issubclass(ZOO_ALGORITHMS[algo], HierarchicalAlgorithm):
-        demo_kwargs = {**DEFAULT_DEMO_KWARGS, **entry.get("demo_kwargs", {})}
-        return {key: demo_kwargs[key] for key in CLONING_SETTINGS}
-    parameters = inspect.signature(ZOO_ALGORITHMS[algo]).parameters
-    return {key: entry.get(key, parameters[key].default) for key in CLONING_SETTINGS}
+    """The demonstration and cloning settings an entry builds its model with (its ``demo_kwargs``), the defaults
+    included."""
+    assert "demo_kwargs" in inspect.signature(ZOO_ALGORITHMS[algo]).parameters, algo
+    demo_kwargs = {**DEFAULT_DEMO_KWARGS, **load_entry(algo, env_id, directory).get("demo_kwargs", {})}
+    return {key: demo_kwargs[key] for key in CLONING_SETTINGS}
 
 
 def test_sac_demo_entries_are_sac_with_dippers_demonstrations_and_cloning():
@@ -189,7 +199,7 @@ def test_sac_demo_entries_are_sac_with_dippers_demonstrations_and_cloning():
     for directory in (hyperparams_dir(), PAPER_DIR):
         for env_id in ["PointMazeFourRooms-v0", *PAPER_TASKS, "default"]:
             entry = load_entry("sac_demo", env_id, directory)
-            without_cloning = {key: value for key, value in entry.items() if key not in CLONING_SETTINGS}
+            without_cloning = {key: value for key, value in entry.items() if key != "demo_kwargs"}
             assert without_cloning == load_entry("sac", env_id, directory), (directory, env_id)
             assert cloning_settings("sac_demo", env_id, directory) == cloning_settings("dipper", env_id, directory), (
                 directory,
@@ -203,13 +213,14 @@ MEASURED_SWITCHES = {"FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0", "FetchPic
 
 def test_dipper_switches_are_on_only_where_measured():
     """No switch beyond the paper is on for a paper task until a measurement there shows it helps."""
-    switches = ("nll_coef", "hindsight_actions", "truncate_at_goal", "planner_kwargs")
+    measured_switches = {"nll_coef", "hindsight_actions", "truncate_at_goal"}
     for directory in (hyperparams_dir(), PAPER_DIR):
         for env_id in PAPER_TASKS:
             entry = load_entry("dipper", env_id, directory)
             measured = directory == hyperparams_dir() and env_id in MEASURED_SWITCHES
-            assert all(key in entry for key in switches) == measured, (directory, env_id)
-            assert any(key in entry for key in switches) == measured, (directory, env_id)
+            switches_on = {key for key, value in entry.get("switch_kwargs", {}).items() if value != DEFAULT_SWITCH_KWARGS[key]}
+            assert switches_on == (measured_switches if measured else set()), (directory, env_id)
+            assert ("planner_kwargs" in entry) == measured, (directory, env_id)
             assert ("acting_tau" in entry["policy_kwargs"]) == measured, (directory, env_id)
             assert load_entry("dipper_paper", env_id, directory)["policy_kwargs"].get("acting_tau") is None
 

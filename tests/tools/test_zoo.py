@@ -13,6 +13,7 @@ from optuna.trial import TrialState
 
 from sb3_dipper import HIER
 from sb3_dipper.zoo import (
+    CONVERTERS,
     SAMPLERS,
     ZOO_ALGORITHMS,
     CSVProgressCallback,
@@ -74,7 +75,7 @@ TINY_PARAMS = {
         "batch_size:16",
         "buffer_size:2000",
         "policy_kwargs:dict(net_arch=[16])",
-        "demo_path:'auto'",
+        "demo_kwargs:dict(demo_path='auto')",
     ],
 }
 
@@ -202,6 +203,48 @@ def test_dipper_nov_is_tuned_without_the_lower_value_term():
         assert "value_reg_coef" not in trial.params
     # A stored trial, even one of a DIPPER study, trains DIPPER-No-V with lambda = 0.
     assert keep_params_without_value_term({"value_reg_coef": 0.1, "beta": 0.2}) == {"value_reg_coef": 0.0, "beta": 0.2}
+
+
+def test_a_dipper_trial_samples_nll_coef_into_switch_kwargs_and_a_stored_one_converts_alike():
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    for algo in ("dipper", "dipper_paper", "dipper_nov"):
+        trial = study.ask()
+        sampled = SAMPLERS[algo](trial, 2, 1, {})
+        assert sampled["switch_kwargs"] == {"nll_coef": trial.params["nll_coef"]} and "nll_coef" not in sampled
+        # A stored trial (before switch_kwargs too: Optuna's name is the same) converts to what was sampled.
+        assert CONVERTERS[algo](trial.params) == sampled, algo
+
+
+def test_a_trial_changes_only_the_switches_it_samples_and_keeps_the_entrys_others(tmp_path):
+    """rl-zoo3 sets a trial's dict over the entry's whole dict; the installed manager completes it by the entry's keys,
+    for a sampled trial (-optimize) and a stored one (--trial-id) alike."""
+    script = f"""
+import argparse, optuna, rl_zoo3.train
+from rl_zoo3.exp_manager import ExperimentManager
+from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+from sb3_dipper.zoo import SAMPLERS, hyperparams_dir, register
+from zoo_scripts.configs import load_entry
+register()
+trial = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask()
+# rl-zoo3's own steps, as they call the sampler and the converter.
+ExperimentManager.hyperparameters_optimization = lambda self: setattr(
+    self, "sampled", HYPERPARAMS_SAMPLER[self.algo](trial, 2, 1, {{}})
+)
+ExperimentManager.load_trial = lambda self, *args, **kwargs: HYPERPARAMS_CONVERTER[self.algo]({{"nll_coef": 0.5, "beta": 0.2}})
+config = str(hyperparams_dir() / "dipper.yml")
+manager = rl_zoo3.train.ExperimentManager(argparse.Namespace(), "dipper", "{ENV_ID}", "logs", config=config)
+entry = load_entry("dipper", "{ENV_ID}")
+manager._hyperparams = entry
+manager.hyperparameters_optimization()
+assert HYPERPARAMS_SAMPLER["dipper"] is SAMPLERS["dipper"]
+assert manager.sampled["switch_kwargs"] == {{**entry["switch_kwargs"], "nll_coef": trial.params["nll_coef"]}}
+stored = manager.load_trial("storage", "s", 1)
+assert stored == {{"switch_kwargs": {{**entry["switch_kwargs"], "nll_coef": 0.5}}, "beta": 0.2}}, stored
+print(sorted(entry["switch_kwargs"]))
+"""
+    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.split("\n")[-2] == "['hindsight_actions', 'nll_coef', 'truncate_at_goal']"
 
 
 def test_train_on_an_upstream_goal_env_without_an_entry_of_its_own(tmp_path):

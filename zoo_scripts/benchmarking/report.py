@@ -47,7 +47,7 @@ def machine() -> str:
 
 def command_line(script: str, arguments: list[str]) -> str:
     """The shell command that runs ``zoo_scripts/<script>`` with ``arguments``, each quoted where a shell would split or
-    read it (``--set "value_reg='score'"``), so a stamped command reruns as it ran."""
+    read it (``--set "preference_source='progress'"``), so a stamped command reruns as it ran."""
     return shlex.join(["python", f"zoo_scripts/{script}", *arguments])
 
 

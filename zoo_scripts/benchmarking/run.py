@@ -95,8 +95,8 @@ def seed_folder(out: Path, variant: str | None, seed: int) -> Path:
 def zoo_pairs(flag: str, assignments: list[str]) -> list[str]:
     """``key=value`` assignments as rl-zoo3's ``key:value`` (its ``-params`` and ``--env-kwargs``).
 
-    rl-zoo3 evaluates each value as Python. A bare word such as ``value_reg=score`` would be a name it cannot evaluate
-    (in every run, after its start-up), so it is refused here with the quoting that works.
+    rl-zoo3 evaluates each value as Python. A bare word such as ``preference_source=progress`` would be a name it cannot
+    evaluate (in every run, after its start-up), so it is refused here with the quoting that works.
 
     :param flag: the option the assignments came from, for the error message
     :param assignments: ``key=value`` strings
