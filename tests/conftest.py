@@ -1,4 +1,6 @@
+import json
 import os
+import zipfile
 from pathlib import Path
 
 # Headless MuJoCo rendering; set before mujoco is imported anywhere.
@@ -116,3 +118,16 @@ __all__ = [
     "short_maze",
     "tiny_model",
 ]
+
+
+def saved_in_old_form(path, old_path, group):
+    """Rewrite the model file ``path`` at ``old_path`` as it was saved before the dict parameter ``group`` existed:
+    each of its keys an attribute of its own in the saved data."""
+    with zipfile.ZipFile(path) as archive:
+        files = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(files["data"])
+    data.update(data.pop(group))
+    files["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(old_path, "w") as archive:
+        for name, content in files.items():
+            archive.writestr(name, content)

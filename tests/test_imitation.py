@@ -1,9 +1,7 @@
 """Demonstrations (npz round trip, malformed files) and the lower level's Q-filtered behaviour cloning."""
 
-import json
 import re
 import warnings
-import zipfile
 
 import gymnasium as gym
 import numpy as np
@@ -23,7 +21,7 @@ from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer
 from sb3_dipper.common.low_level import clipped_soft_target
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.envs.demos import expert_demonstrations
-from tests.conftest import HIERARCHICAL_ALGORITHMS, short_maze, tiny_model
+from tests.conftest import HIERARCHICAL_ALGORITHMS, saved_in_old_form, short_maze, tiny_model
 
 
 @pytest.fixture(scope="module")
@@ -386,14 +384,7 @@ def test_the_demo_settings_before_demo_kwargs_still_work_and_warn(maze_demos, tm
     model.save(tmp_path / "new.zip")
 
     # The file as HIER wrote it before demo_kwargs: each setting an attribute of its own.
-    with zipfile.ZipFile(tmp_path / "new.zip") as archive:
-        files = {name: archive.read(name) for name in archive.namelist()}
-    data = json.loads(files["data"])
-    data.update(data.pop("demo_kwargs"))
-    files["data"] = json.dumps(data).encode()
-    with zipfile.ZipFile(tmp_path / "old.zip", "w") as archive:
-        for name, content in files.items():
-            archive.writestr(name, content)
+    saved_in_old_form(tmp_path / "new.zip", tmp_path / "old.zip", "demo_kwargs")
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use
         loaded = HIER.load(tmp_path / "old.zip", env=short_maze())

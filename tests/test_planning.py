@@ -26,7 +26,7 @@ from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.dipper import DEFAULT_SWITCH_KWARGS
-from tests.conftest import SHORT_EPISODES, any_tiny_model, short_maze, tiny_model
+from tests.conftest import SHORT_EPISODES, any_tiny_model, saved_in_old_form, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from tests.test_save_load import rollout_actions
 from zoo_scripts.research import planner_share
@@ -714,14 +714,7 @@ def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
     model.learn(100)
     model.save(tmp_path / "new.zip")
     # The file as DIPPER wrote it before switch_kwargs: each switch an attribute of its own.
-    with zipfile.ZipFile(tmp_path / "new.zip") as archive:
-        files = {name: archive.read(name) for name in archive.namelist()}
-    data = json.loads(files["data"])
-    data.update(data.pop("switch_kwargs"))
-    files["data"] = json.dumps(data).encode()
-    with zipfile.ZipFile(tmp_path / "old.zip", "w") as archive:
-        for name, content in files.items():
-            archive.writestr(name, content)
+    saved_in_old_form(tmp_path / "new.zip", tmp_path / "old.zip", "switch_kwargs")
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use
