@@ -223,7 +223,7 @@ import argparse, optuna, rl_zoo3.train
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 from sb3_dipper.zoo import SAMPLERS, hyperparams_dir, register
-from zoo_scripts.configs import load_entry
+from sb3_dipper.zoo.run_config import load_entry
 register()
 trial = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask()
 # rl-zoo3's own steps, as they call the sampler and the converter.
