@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_dipper.common.deprecation import completed_groups
@@ -29,6 +28,7 @@ from sb3_dipper.zoo.resume import (
     remove_resume_checkpoint,
     set_aside_part,
 )
+from sb3_dipper.zoo.run_config import yaml_entry
 
 if TYPE_CHECKING:
     import optuna
@@ -89,16 +89,6 @@ class RunControl:
         recorded_evaluations(self.resume)
 
 
-def yaml_entry(config: str, env_id: str) -> dict[str, Any] | None:
-    """The entry rl-zoo3 reads for ``env_id`` from the hyperparameter file ``config`` (the env's own, else
-    ``default``); ``None`` where ``config`` is no YAML file."""
-    if not config.endswith((".yml", ".yaml")):
-        return None
-    with open(config) as file:
-        entries = yaml.safe_load(file)
-    return entries.get(env_id, entries.get("default", {}))
-
-
 class TrialsKeepTheEntrysGroups(_ExperimentManager):
     """rl-zoo3's experiment manager whose Optuna trials change only the keys they sample of a dict whose keys are
     settings of their own (:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`, DIPPER's
@@ -128,8 +118,10 @@ class TrialsKeepTheEntrysGroups(_ExperimentManager):
 
     def load_trial(self, storage: str, study_name: str, trial_id: int | None = None, convert: bool = True) -> dict[str, Any]:
         params = super().load_trial(storage, study_name, trial_id, convert)
-        entry = yaml_entry(self.config, self.env_name.gym_id)
-        return params if not convert or entry is None else completed_groups(self._setting_groups(), params, entry)
+        # rl-zoo3 has read the entry by now (read_hyperparameters), but does not keep it: read it again, from a YAML file.
+        if not convert or not self.config.endswith((".yml", ".yaml")):
+            return params
+        return completed_groups(self._setting_groups(), params, yaml_entry(self.config, self.env_name.gym_id))
 
     def _setting_groups(self) -> set[str]:
         """The algorithm's dict parameters given key by key (:meth:`~sb3_dipper.common.loading.CheckedLoading.setting_groups`;

@@ -53,14 +53,19 @@ NAMESPACE = {"dict": dict, "nn": th.nn, "th": th, "HerReplayBuffer": HerReplayBu
 CONFIG_FILE = "config.yml"
 
 
-def load_entry(algo: str, env_id: str, hyperparams_dir: Path = HYPERPARAMS_DIR) -> dict[str, Any]:
-    """The entry for ``env_id`` (or ``default``) of ``<algo>.yml``, with string values evaluated as rl-zoo3 does."""
-    path = hyperparams_dir / f"{algo}.yml"
+def yaml_entry(path: str | Path, env_id: str) -> dict[str, Any]:
+    """The entry rl-zoo3 reads for ``env_id`` from the hyperparameter file ``path``: the env's own, else ``default``;
+    its values as written."""
     with open(path) as file:
         entries = yaml.safe_load(file)
     if env_id not in entries and "default" not in entries:
         raise KeyError(f"{path} has no entry for {env_id!r} and no 'default' entry")
-    entry = dict(entries.get(env_id, entries.get("default")))
+    return dict(entries.get(env_id, entries.get("default")))
+
+
+def load_entry(algo: str, env_id: str, hyperparams_dir: Path = HYPERPARAMS_DIR) -> dict[str, Any]:
+    """The entry for ``env_id`` (or ``default``) of ``<algo>.yml``, with string values evaluated as rl-zoo3 does."""
+    entry = yaml_entry(hyperparams_dir / f"{algo}.yml", env_id)
     for key in EVALUATED_KEYS:
         if isinstance(entry.get(key), str):
             entry[key] = eval(entry[key], {"__builtins__": {}}, NAMESPACE)
