@@ -141,14 +141,19 @@ def differing_hyperparameters(started: Mapping[str, Any], given: Mapping[str, An
 
     A ``use_sde`` entry in a recorded ``*policy_kwargs`` dict that the given one lacks is no difference: SB3's SAC
     writes its ``use_sde`` into the ``policy_kwargs`` it is handed, and rl-zoo3 records that dict after the model is
-    built (sb3-dipper's hierarchical algorithms handed theirs to SAC too before they copied it).
+    built (sb3-dipper's hierarchical algorithms handed theirs to SAC too before they copied it). Nor is a ``gamma`` in
+    a recorded ``normalize`` dict that equals the given ``gamma``: rl-zoo3 writes the algorithm's discount into the
+    ``normalize`` dict it is handed (``VecNormalize`` discounts returns with it) before it records the dict.
     """
     differing = []
     for name in sorted(set(started) | set(given)):
         recorded, wanted = started.get(name), given.get(name)
-        if name.endswith("policy_kwargs") and isinstance(recorded, dict) and isinstance(wanted, dict):
-            if "use_sde" in recorded and "use_sde" not in wanted:
+        if isinstance(recorded, dict) and isinstance(wanted, dict):
+            if name.endswith("policy_kwargs") and "use_sde" in recorded and "use_sde" not in wanted:
                 recorded = {key: value for key, value in recorded.items() if key != "use_sde"}
+            own_gamma = "gamma" in recorded and recorded["gamma"] == given.get("gamma")
+            if name == "normalize" and own_gamma and "gamma" not in wanted:
+                recorded = {key: value for key, value in recorded.items() if key != "gamma"}
         if recorded != wanted:
             differing.append((name, started.get(name), given.get(name)))
     return differing

@@ -183,7 +183,9 @@ zoo.main()
 
 
 # A tiny SAC run of rl-zoo3's own Pendulum entry: the quickest run to pause and resume.
-SAC_PARAMS = ["learning_starts:100", "buffer_size:1000", "batch_size:32"]
+# A normalised run with its own gamma, like the Fetch profiles: rl-zoo3 records the normalize dict with that gamma in
+# it, and a resume must still find the hyperparameters it is given the same as the recorded ones.
+SAC_PARAMS = ["learning_starts:100", "buffer_size:1000", "batch_size:32", "gamma:0.98", "normalize:dict(norm_obs=True)"]
 
 
 def pendulum_flags(log_folder: Path) -> list[str]:
@@ -283,6 +285,17 @@ def test_the_hyperparameters_of_a_resumed_run_are_compared_with_its_record(tmp_p
     ]
     with pytest.raises(FileNotFoundError, match=r"config.yml is missing: .*start a new run"):
         check_resumed_hyperparameters(tmp_path, "FetchPush-v4", same)
+
+
+def test_the_gamma_rl_zoo3_writes_into_normalize_is_the_run_s_own(tmp_path):
+    write_config(tmp_path, "FetchPush-v4", {"gamma": 0.98, "normalize": {"gamma": 0.98, "norm_obs": True}})
+    check_resumed_hyperparameters(tmp_path, "FetchPush-v4", {"gamma": 0.98, "normalize": {"norm_obs": True}})
+    with pytest.raises(ValueError) as error:
+        check_resumed_hyperparameters(tmp_path, "FetchPush-v4", {"gamma": 0.95, "normalize": {"norm_obs": True}})
+    assert str(error.value).splitlines()[1:3] == [
+        "  gamma: started with 0.98, given 0.95",
+        "  normalize: started with {'gamma': 0.98, 'norm_obs': True}, given {'norm_obs': True}",
+    ]
 
 
 def test_a_run_started_before_demo_kwargs_resumes_with_the_same_settings_in_the_new_form(tmp_path):
