@@ -15,17 +15,18 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.save_util import data_to_json
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_dipper import DIPPER, HIER, RAPS
+from sb3_dipper import DIPPER, HIER, RAPS, DPOFlat
 from sb3_dipper.common.hierarchical_policy import SACPolicyLowLevel
 from sb3_dipper.common.planning import SubgoalGraph
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.dipper import DEFAULT_SWITCH_KWARGS
+from sb3_dipper.dipper import DEFAULT_SWITCH_KWARGS, DIPPERPolicy
 from tests.conftest import SHORT_EPISODES, any_tiny_model, saved_in_old_form, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from tests.test_save_load import rollout_actions
@@ -508,6 +509,41 @@ def test_a_log_std_floor_bounds_the_log_density_of_stored_subgoals(tmp_path):
     assert DIPPER.load(tmp_path / "floored.zip").policy.actor.log_std_min == -1.0
     with pytest.raises(ValueError, match=r"log_std_min must be a number in \[-20, 2\)"):
         tiny_model(DIPPER, short_maze(), policy_kwargs=dict(net_arch=[16], log_std_min=2.0))
+
+
+@pytest.mark.parametrize("normalize", [False, True])
+def test_a_goal_anchored_policy_starts_at_the_goal_and_learns_offsets_from_it(normalize, tmp_path):
+    env = short_maze(n_envs=2)
+    if normalize:  # the anchor follows the statistics, which training moves
+        env = VecNormalize(env, norm_obs=True, norm_reward=False)
+    model = tiny_model(DIPPER, env, policy_kwargs=dict(net_arch=[16], goal_anchored=True))
+
+    def proposals(acting, observation):
+        acting._refresh_low_normalizer()
+        return acting.subgoal_space.to_world(acting._high_level_actions(observation, deterministic=True))
+
+    def observation_and_goals():
+        observation = env.reset()
+        return observation, env.get_original_obs()["desired_goal"] if normalize else observation["desired_goal"]
+
+    observation, goals = observation_and_goals()
+    np.testing.assert_allclose(proposals(model, observation), goals, atol=1e-3 * 7.0)  # the anchor's epsilon, 7 m box
+    model.learn(200)
+    if normalize:
+        env.training = False
+    observation, goals = observation_and_goals()
+    trained = proposals(model, observation)
+    assert np.abs(trained - goals).max() > 1e-2  # the preference loss moved the mean off the goal
+    model.save(tmp_path / "trained.zip")
+    loaded = DIPPER.load(tmp_path / "trained.zip")  # the anchor's map is saved with the policy
+    np.testing.assert_allclose(proposals(loaded, observation), trained, atol=1e-5)
+
+
+def test_goal_anchoring_needs_a_goal_and_a_subgoal_box():
+    with pytest.raises(ValueError, match="goal_anchored=True anchors the higher level's subgoals at the observed goal"):
+        DIPPERPolicy(spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,)), lambda _: 1e-3, goal_anchored=True)
+    with pytest.raises(ValueError, match="DPO-FLAT's actions are primitive actions"):
+        DPOFlat("MultiInputPolicy", short_maze(), segment_length=5, policy_kwargs=dict(goal_anchored=True))
 
 
 @pytest.mark.parametrize("normalize", [False, True])

@@ -79,3 +79,18 @@ def test_gradients_pass_straight_through_the_snapping():
 def test_bad_element_spaces_are_refused_at_construction(overrides, message):
     with pytest.raises(ValueError, match=message):
         element_space(**overrides)
+
+
+def test_the_goal_unit_map_is_to_unit_of_the_projected_goal():
+    """A normalised goal x maps to to_unit(project(mean + std * x)): scale 2 std / span, shift 2 (mean - low) / span - 1."""
+    space = SubgoalSpace(np.array([0.0, -1.0]), np.array([2.0, 1.0]), threshold=0.1, indices=(2, 0))
+    mean, std = np.array([1.0, 5.0, 0.5]), np.array([0.5, 9.0, 0.25])
+    scale, shift, indices = space.goal_unit_map(mean, std)
+    np.testing.assert_allclose(scale, [0.25, 0.5])  # entry 2: 2 * 0.25 / 2; entry 0: 2 * 0.5 / 2
+    np.testing.assert_allclose(shift, [-0.5, 1.0])  # 2 * 0.5 / 2 - 1; 2 * (1 + 1) / 2 - 1
+    np.testing.assert_array_equal(indices, [2, 0])
+    normalised = np.array([[0.4, -3.0, 2.0], [-1.0, 0.0, -2.0]])
+    by_map = np.clip(scale * normalised[:, indices] + shift, -1.0, 1.0)
+    np.testing.assert_allclose(by_map, space.to_unit(space.project(mean + std * normalised)), atol=1e-6)
+    with pytest.raises(NotImplementedError, match=r"goal_anchored=True\) cannot take this subgoal space"):
+        element_space().goal_unit_map(np.zeros(3), np.ones(3))

@@ -81,6 +81,18 @@ class SubgoalSpace:
         """Map subgoals back to ``[-1, 1]^d`` (clipped to the box)."""
         return np.clip(2.0 * (subgoals - self.low) / self._span - 1.0, -1.0, 1.0).astype(np.float32)
 
+    def goal_unit_map(self, goal_mean: np.ndarray, goal_std: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(scale, shift, indices)`` such that the unit action of the goal ``goal_mean + goal_std * x`` (a goal
+        normalised to ``x``) is ``clip(scale * x[indices] + shift, -1, 1)``: :meth:`to_unit` of :meth:`project` is
+        affine per entry.
+
+        :param goal_mean: per entry of the goal, the mean its normalisation subtracts (zeros for none)
+        :param goal_std: per entry of the goal, the scale its normalisation divides by (ones for none)
+        """
+        indices = np.arange(self.dim) if self.indices is None else np.asarray(self.indices)
+        mean, std = np.asarray(goal_mean, dtype=np.float64)[indices], np.asarray(goal_std, dtype=np.float64)[indices]
+        return 2.0 * std / self._span, 2.0 * (mean - self.low) / self._span - 1.0, indices
+
     def project(self, achieved_goal: np.ndarray) -> np.ndarray:
         """The part of an achieved goal that a subgoal controls."""
         if self.indices is None:
@@ -185,6 +197,12 @@ class ElementSubgoalSpace(SubgoalSpace):
         """The unit action whose subgoal asks done exactly for the elements done in ``subgoals``: +1 or -1 per entry."""
         element_done = self._element_distances(subgoals, self.done) < self.threshold
         return np.where(element_done[..., self._owner], 1.0, -1.0).astype(np.float32)
+
+    def goal_unit_map(self, goal_mean: np.ndarray, goal_std: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError(
+            "ElementSubgoalSpace snaps each element to done or start, so a goal's unit action is not an affine map of the "
+            "goal: a goal-anchored higher policy (policy_kwargs goal_anchored=True) cannot take this subgoal space"
+        )
 
     def distance(self, achieved_subgoal: np.ndarray, subgoal: np.ndarray) -> np.ndarray:
         return np.max(self._element_distances(achieved_subgoal, subgoal), axis=-1)

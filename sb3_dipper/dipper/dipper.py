@@ -347,6 +347,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
         # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
         self.last_planned = np.zeros(self.n_envs, dtype=bool)
+        self._refresh_goal_anchor()
 
     def _apply_switches(self) -> None:
         """Check ``switch_kwargs`` and set the part of the model built from them (the pairs' truncation at the goal), so
@@ -359,6 +360,23 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 "switch_kwargs['reference']='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 "
                 "(e.g. 0.05)"
             )
+
+    def _refresh_low_normalizer(self) -> None:
+        super()._refresh_low_normalizer()
+        if getattr(self, "policy", None) is not None:  # the setup refreshes the statistics before it builds the policy
+            self._refresh_goal_anchor()
+
+    def _refresh_goal_anchor(self) -> None:
+        """Point a goal-anchored policy (``policy_kwargs`` ``goal_anchored``) at the goal under the current statistics."""
+        if not self.policy.goal_anchored:
+            return
+        assert self.subgoal_space is not None
+        goal_dim = self.observation_space["desired_goal"].shape[0]  # type: ignore[index]
+        mean, std = np.zeros(goal_dim), np.ones(goal_dim)
+        if self.low_normalizer is not None and "desired_goal" in self.low_normalizer.goal_statistics:
+            mean, var = self.low_normalizer.goal_statistics["desired_goal"]
+            std = np.sqrt(var + self.low_normalizer.epsilon)
+        self.policy.set_goal_anchor(*self.subgoal_space.goal_unit_map(mean, std))
 
     def _check_planner(self) -> None:
         """Build :attr:`planner` from ``planner_kwargs``, checked as the constructor checks them. A loaded model's planner

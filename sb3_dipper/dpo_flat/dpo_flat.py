@@ -215,6 +215,11 @@ class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
                 f"segment_length ({self.segment_length}) is longer than an episode ({self.max_episode_steps} steps): "
                 f"segments are cut from single episodes, so choose segment_length <= {self.max_episode_steps}"
             )
+        if self.policy_kwargs.get("goal_anchored"):
+            raise ValueError(
+                "policy_kwargs goal_anchored=True anchors a higher level's subgoals at the goal; DPO-FLAT's actions are "
+                "primitive actions, which have no goal to start from: leave goal_anchored out"
+            )
         self.policy = self.policy_class(  # type: ignore[assignment]
             self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
         ).to(self.device)
