@@ -409,7 +409,25 @@ def test_profiles_measures_training_and_env_rates(capsys):
     for row in rows:
         train_rate, env_rate, to_env = (float(cell) for cell in row.split(" | ")[2:5])
         assert 0 < train_rate < env_rate and to_env == pytest.approx(train_rate / env_rate, abs=0.01)
-    assert rows[1].endswith("| 1.00 |")
+    assert rows[1].endswith("| 1.00 | - |")  # SAC+HER has no higher level
+    assert 0 < int(rows[0].split(" | ")[-1].rstrip(" |%")) < 100
+
+
+def test_the_higher_level_s_share_is_the_time_train_spends_outside_the_lower_update():
+    class Hierarchical:  # the methods run_profiles times, nothing else
+        def _train_low_level(self):
+            time.sleep(0.02)
+
+        def train(self):
+            self._train_low_level()
+            time.sleep(0.03)
+
+    model = Hierarchical()
+    spent = benchmark.higher_level_seconds({"hier": model, "flat": object()})
+    model.train()
+    assert list(spent) == ["hier"]
+    assert spent["hier"]["_train_low_level"] == pytest.approx(0.02, abs=0.01)
+    assert spent["hier"]["train"] - spent["hier"]["_train_low_level"] == pytest.approx(0.03, abs=0.01)
 
 
 @pytest.mark.parametrize("algo", ["dipper", "hier", "sac"])

@@ -59,6 +59,35 @@ def interleaved_seconds(chunks: Mapping[str, Callable[[], Any]], repeats: int) -
     return seconds
 
 
+def time_spent_in(model: Any, method_names: tuple[str, ...]) -> dict[str, float]:
+    """Wrap ``model``'s methods so that the seconds spent in each add up in the returned dict (from now on)."""
+    seconds = dict.fromkeys(method_names, 0.0)
+
+    def timed(name: str, method: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                seconds[name] += time.perf_counter() - start
+
+        return call
+
+    for name in method_names:
+        setattr(model, name, timed(name, getattr(model, name)))
+    return seconds
+
+
+def higher_level_seconds(models: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """For each two-level model (one with a lower-level update, ``_train_low_level``), the seconds its ``train`` and
+    that update take from now on: the difference is the higher level's part of training (labels and its updates)."""
+    return {
+        name: time_spent_in(model, ("train", "_train_low_level"))
+        for name, model in models.items()
+        if hasattr(model, "_train_low_level")
+    }
+
+
 def training_chunks(models: dict[str, Any], steps: int) -> dict[str, Callable[[], Any]]:
     """``steps`` more training steps of each model, as chunks for :func:`interleaved_seconds`."""
     return {name: partial(model.learn, steps, reset_num_timesteps=False) for name, model in models.items()}
@@ -191,26 +220,31 @@ def run_profiles(args: argparse.Namespace) -> None:
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
             model.learn(int(getattr(model, "learning_starts", 0)) + args.steps)
+        spent = higher_level_seconds(models)
         seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
         rates = {algo: args.steps / statistics.median(values) for algo, values in seconds.items()}
         baseline = rates.get("sac")
         for algo, rate in rates.items():
             versus_sac = f"{rate / baseline:.2f}" if baseline else "-"
-            ratios = f"{rate / env_rate:.2f} | {versus_sac}"
-            rows.append(f"| `{env_id}` | {label(algo)} | {rate:.0f} | {env_rate:.0f} | {ratios} |")
-            records.append(f"{env_id},{algo},{models[algo].n_envs},{rate:.2f},{env_rate:.2f}")
+            higher = spent.get(algo)
+            share = (higher["train"] - higher["_train_low_level"]) / sum(seconds[algo]) if higher else None
+            cells = f"{rate / env_rate:.2f} | {versus_sac} | {'-' if share is None else f'{share:.0%}'}"
+            rows.append(f"| `{env_id}` | {label(algo)} | {rate:.0f} | {env_rate:.0f} | {cells} |")
+            share_cell = "" if share is None else f"{share:.3f}"
+            records.append(f"{env_id},{algo},{models[algo].n_envs},{rate:.2f},{env_rate:.2f},{share_cell}")
         print(rows[-len(rates) :], flush=True)
     csv = RESULTS_DIR / f"{args.name}.csv"
     body = (
         "Primitive steps per second while training, at each task's CPU profile (`hyperparams/<algo>.yml`), one torch "
         f"thread, median of {args.repeats} interleaved chunks of {args.steps:,} steps after `learning_starts`, measured "
         "in one process; the env rate is the same vectorised env under random actions (the limit if updates were "
-        f"free). CSV: `{os.path.relpath(csv, REPO)}`.\n\n"
-        "| task | algorithm | training steps/s | env steps/s | ratio to env | ratio to SAC+HER |\n|---|---|---|---|---|---|\n"
-        + "\n".join(rows)
+        "free). The higher level's share is the part of the measured time a two-level algorithm spends training outside "
+        f"its lower level's updates (labelling pairs and the higher-level updates). CSV: `{os.path.relpath(csv, REPO)}`.\n\n"
+        "| task | algorithm | training steps/s | env steps/s | ratio to env | ratio to SAC+HER | higher level's share |\n"
+        "|---|---|---|---|---|---|---|\n" + "\n".join(rows)
     )
     if args.write:
-        header = "env,algo,n_envs,train_steps_per_second,env_steps_per_second"
+        header = "env,algo,n_envs,train_steps_per_second,env_steps_per_second,higher_level_share"
         write_bytes_atomically(csv, "\n".join([header, *records, ""]).encode())
         write_section(args.name, body, command_line("benchmark.py", sys.argv[1:]))
     print(body)
