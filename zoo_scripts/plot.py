@@ -182,12 +182,13 @@ def steps_label(steps: float, _position: object = None) -> str:
     return f"{steps / 1e3:g}k" if abs(steps) >= 1e3 else f"{steps:g}"
 
 
-def _steps_axis(ax: plt.Axes) -> None:
+def steps_axis(ax: plt.Axes) -> None:
+    """Primitive steps on the x axis of ``ax``, with ticks as :func:`steps_label` writes them."""
     ax.set_xlabel("primitive steps")
     ax.xaxis.set_major_formatter(FuncFormatter(steps_label))
 
 
-def _colors(names: list[str]) -> dict[str, tuple[float, ...]]:
+def line_colors(names: list[str]) -> dict[str, tuple[float, ...]]:
     """One color per line name, the same in every panel and figure.
 
     tab20's even colors are tab10's (matplotlib's default cycle); its lighter odd ones serve past the tenth name (the
@@ -202,7 +203,7 @@ def _plot_series(ax: plt.Axes, steps: np.ndarray, values: np.ndarray, **kwargs: 
     ax.plot(steps, values, marker="o" if len(steps) == 1 else None, **kwargs)
 
 
-def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
+def shared_legend(fig: Figure, axes: np.ndarray) -> None:
     """One legend below the panels (as in the paper's figures), with every algorithm that appears in any panel."""
     entries: dict[str, Artist] = {}
     for ax in axes.flat:
@@ -217,6 +218,26 @@ def _shared_legend(fig: Figure, axes: np.ndarray) -> None:
     fig.legend(list(entries.values()), list(entries), loc="lower center", ncol=columns, frameon=False)
 
 
+def draw_seeds(
+    ax: plt.Axes, curves: list[Curve], color: tuple[float, ...], legend_text: str, limits: tuple[float, float] | None = None
+) -> None:
+    """One line of a panel from the seeds' curves: their mean with a band of one standard deviation (:func:`aggregate`)
+    where every seed has been measured; seeds that went further (the others still running) go on as thin dotted lines.
+
+    :param limits: the range the values can take (``(0, 1)`` for a rate), which the band does not leave
+    """
+    steps, mean, std = aggregate(curves)
+    _plot_series(ax, steps, mean, color=color, label=legend_text)
+    low, high = mean - std, mean + std
+    if limits is not None:
+        low, high = np.clip(low, *limits), np.clip(high, *limits)
+    ax.fill_between(steps, low, high, color=color, alpha=0.2)
+    for seed_steps, seed_values in curves:
+        if seed_steps[-1] > steps[-1]:
+            further = seed_steps >= steps[-1]
+            _plot_series(ax, seed_steps[further], seed_values[further], color=color, linewidth=0.8, linestyle=":")
+
+
 def draw_success(panels: dict[str, dict[str, list[Curve]]], labels: Callable[[str], str] = label) -> Figure:
     """Success rate against primitive steps, one panel per env (four to a row), one line per name in it.
 
@@ -226,28 +247,21 @@ def draw_success(panels: dict[str, dict[str, list[Curve]]], labels: Callable[[st
     :param labels: the legend name of a line's key
     """
     names = list(dict.fromkeys(name for lines in panels.values() for name in lines))
-    colors = _colors(names)
+    colors = line_colors(names)
     columns = min(len(panels), 4)
     rows = math.ceil(len(panels) / columns)
     fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.4 * rows), squeeze=False, sharey=True)
     for ax, (env_id, lines) in zip(axes.flat, panels.items(), strict=False):
         for name, curves in lines.items():
-            steps, mean, std = aggregate(curves)
-            _plot_series(ax, steps, mean, color=colors[name], label=labels(name))
-            ax.fill_between(steps, np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1), color=colors[name], alpha=0.2)
-            for seed_steps, seed_success in curves:
-                if seed_steps[-1] > steps[-1]:
-                    further = seed_steps >= steps[-1]
-                    further_success = seed_success[further]
-                    _plot_series(ax, seed_steps[further], further_success, color=colors[name], linewidth=0.8, linestyle=":")
+            draw_seeds(ax, curves, colors[name], labels(name), limits=(0, 1))
         ax.set(title=env_id, ylim=(-0.02, 1.02))
-        _steps_axis(ax)
+        steps_axis(ax)
         ax.grid(alpha=0.3)
     for ax in axes.flat[len(panels) :]:
         ax.set_axis_off()
     for ax in axes[:, 0]:
         ax.set_ylabel("success rate")
-    _shared_legend(fig, axes)
+    shared_legend(fig, axes)
     return fig
 
 
@@ -325,7 +339,7 @@ def draw_hierarchical_metrics(
 
     :param labels: the legend name of an algorithm (or ``<algo>-<variant>`` row label)
     """
-    colors = _colors(algos)
+    colors = line_colors(algos)
     n_rows = len(HIERARCHICAL_METRICS)
     fig, axes = plt.subplots(n_rows, len(envs), figsize=(4.2 * len(envs), 3.4 * n_rows), squeeze=False, sharey="row")
     plotted = False
@@ -342,12 +356,12 @@ def draw_hierarchical_metrics(
                 plotted = True
         for row, name in enumerate(HIERARCHICAL_METRICS.values()):
             axes[row, col].set(title=env_id if row == 0 else None, ylabel=name if col == 0 else None)
-            _steps_axis(axes[row, col])
+            steps_axis(axes[row, col])
             axes[row, col].grid(alpha=0.3)
     if not plotted:
         plt.close(fig)
         return None
-    _shared_legend(fig, axes)
+    shared_legend(fig, axes)
     return fig
 
 
@@ -384,7 +398,7 @@ def final_success_iqm(
 def plot_iqm(table: pd.DataFrame) -> Figure:
     """One horizontal bar per algorithm (IQM) with its confidence interval, one panel per env."""
     algos, envs = list(dict.fromkeys(table["algo"])), list(dict.fromkeys(table["env"]))
-    colors = _colors(algos)
+    colors = line_colors(algos)
     fig, axes = plt.subplots(1, len(envs), figsize=(4.2 * len(envs), 0.5 * len(algos) + 1.5), squeeze=False, sharey=True)
     for ax, env_id in zip(axes[0], envs, strict=True):
         rows = table[table["env"] == env_id].set_index("algo").loc[algos]
