@@ -537,6 +537,8 @@ def test_a_goal_anchored_policy_starts_at_the_goal_and_learns_offsets_from_it(no
     model.save(tmp_path / "trained.zip")
     loaded = DIPPER.load(tmp_path / "trained.zip")  # the anchor's map is saved with the policy
     np.testing.assert_allclose(proposals(loaded, observation), trained, atol=1e-5)
+    planner_share.reset_higher_policy(model, seed=1)  # the control "higher policy untrained": the goal again
+    np.testing.assert_allclose(proposals(model, observation), goals, atol=1e-3 * 7.0)
 
 
 def test_goal_anchoring_needs_a_goal_and_a_subgoal_box():

@@ -73,7 +73,11 @@ class FlooredStdActor(Actor):
         super().__init__(*args, **kwargs)
         self.log_std_min = log_std_min
         self.goal_anchor = goal_anchor
-        if goal_anchor is not None:
+        self.start_at_the_anchor()
+
+    def start_at_the_anchor(self) -> None:
+        """With a goal anchor, zero the mean's last layer, so that the actor proposes the goal (its untrained state)."""
+        if self.goal_anchor is not None:
             assert isinstance(self.mu, nn.Linear), "SAC's actor without gSDE: the mean is a linear layer"
             nn.init.zeros_(self.mu.weight)
             nn.init.zeros_(self.mu.bias)

@@ -51,6 +51,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.dipper import DIPPER
+from sb3_dipper.dipper.policies import FlooredStdActor
 from sb3_dipper.raps import RAPS
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
@@ -74,12 +75,16 @@ def case_settings(case: str) -> dict[str, bool]:
 
 
 def reset_higher_policy(model: HierarchicalAlgorithm, seed: int) -> None:
-    """Every network of the higher policy back to freshly initialised weights (drawn from ``seed``)."""
+    """Every network of the higher policy back to freshly initialised weights (drawn from ``seed``); a goal-anchored
+    DIPPER policy back to proposing the goal, as it starts."""
     th.manual_seed(seed)
     for module in model.policy.modules():
         reset = getattr(module, "reset_parameters", None)
         if callable(reset):
             reset()
+    for module in model.policy.modules():
+        if isinstance(module, FlooredStdActor):
+            module.start_at_the_anchor()
 
 
 def measure(
