@@ -227,6 +227,9 @@ def test_planner_share_script_evaluates_the_model_and_its_checkpoints_four_ways_
     report = json.loads((run / "planner_share.json").read_text())
     assert list(report) == ["as_trained", "untrained_policy", "lower_level_alone"]
     assert all(case["planned_share"] == 0 for case in report.values())
+    # How far the subgoals decided lie from the goal and from where the agent was: the goal's own are at the goal.
+    assert report["lower_level_alone"]["subgoal_to_goal"] == pytest.approx(0.0, abs=1e-5)
+    assert report["lower_level_alone"]["subgoal_to_achieved"] > 0.1 and report["as_trained"]["subgoal_to_goal"] > 0.1
     assert pd.read_csv(tmp_path / "share.csv")["case"].tolist() == list(report)
 
 

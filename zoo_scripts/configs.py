@@ -60,14 +60,14 @@ def measure_runs(
     args: argparse.Namespace,
     measure: Callable[[Path, str, str, int, Path | None], tuple[int, dict[str, dict[str, float]]]],
     report: str,
-    columns: tuple[str, str, str],
+    columns: tuple[str, ...],
 ) -> None:
     """Measure every run of ``args.runs`` with ``measure(run, args.algo, env_id, args.episodes, model_file)``
     (``model_file`` ``None``: the run's final model, where it has one), also at every checkpoint the run kept with
     ``args.checkpoints``; print each result, write the final model's as ``<run>/<report>`` (JSON) and, with
     ``args.csv``, one CSV row per model and case.
 
-    :param columns: the CSV's case column and its two metrics, e.g. ``("driver", "success", "options_reached")``
+    :param columns: the CSV's case column and its metrics, e.g. ``("driver", "success", "options_reached")``
     """
     case_column, *metrics = columns
     rows = [",".join(("run", "steps", case_column, *metrics))]
@@ -118,23 +118,31 @@ def evaluate(
     sample_higher: bool = False,
     sample_lower: bool = False,
 ) -> dict[str, float]:
-    """Success over ``n_episodes`` and the share of higher-level decisions the planner made; both levels act
-    deterministically unless told to sample.
+    """Success over ``n_episodes``, the share of higher-level decisions the planner made, and how far the subgoals
+    decided lie from the goal and from where the agent was when deciding (``subgoal_to_goal``,
+    ``subgoal_to_achieved``: mean distances in the subgoal space, world units); both levels act deterministically unless
+    told to sample.
 
     :param goal_as_subgoal: replace the higher level by the env's goal as every subgoal (the lower level alone)
     :param sample_higher: the higher level samples its policy, as while collecting
     :param sample_lower: the lower level samples its policy, as while collecting
     """
     decisions = {"planned": 0, "all": 0}
+    distances: dict[str, list[float]] = {"subgoal_to_goal": [], "subgoal_to_achieved": []}
     decide = model._high_level_actions
 
     def counted(observation, deterministic):  # type: ignore[no-untyped-def]  # the case decides, not predict's flag
         if goal_as_subgoal:
-            return model._subgoal_actions(observation["desired_goal"])
-        actions = decide(observation, not sample_higher)
-        planned = model.last_planned if isinstance(model, DIPPER) else np.zeros(len(actions), dtype=bool)
-        decisions["planned"] += int(planned.sum())
-        decisions["all"] += int(planned.size)
+            actions = model._subgoal_actions(observation["desired_goal"])
+        else:
+            actions = decide(observation, not sample_higher)
+            planned = model.last_planned if isinstance(model, DIPPER) else np.zeros(len(actions), dtype=bool)
+            decisions["planned"] += int(planned.sum())
+            decisions["all"] += int(planned.size)
+        subgoals = model.subgoal_space.to_world(actions)
+        for key, goal_key in (("subgoal_to_goal", "desired_goal"), ("subgoal_to_achieved", "achieved_goal")):
+            targets = model.subgoal_space.to_world(model._subgoal_actions(observation[goal_key], goal_key))
+            distances[key].extend(model.subgoal_space.distance(subgoals, targets).tolist())
         return actions
 
     model._high_level_actions = counted  # type: ignore[method-assign]
@@ -142,7 +150,11 @@ def evaluate(
         success = float(np.mean(episode_successes(model, env, n_episodes, deterministic=not sample_lower)))
     finally:
         del model._high_level_actions
-    return {"success": success, "planned_share": decisions["planned"] / max(decisions["all"], 1)}
+    return {
+        "success": success,
+        "planned_share": decisions["planned"] / max(decisions["all"], 1),
+        **{key: float(np.mean(values)) if values else float("nan") for key, values in distances.items()},
+    }
 
 
 def torch_threads() -> int:

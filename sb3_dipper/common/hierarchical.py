@@ -433,11 +433,14 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _high_level_actions(self, observation: DictObs, deterministic: bool) -> np.ndarray:
         """Higher-level actions in [-1, 1]^d for a batch of (normalised) observations."""
 
-    def _subgoal_actions(self, goals: np.ndarray) -> np.ndarray:
-        """The higher-level actions whose subgoals are ``goals``, given as the (normalised) observations give them."""
+    def _subgoal_actions(self, goals: np.ndarray, key: str = "desired_goal") -> np.ndarray:
+        """The higher-level actions whose subgoals are ``goals``, given as the (normalised) observations give them.
+
+        :param key: the observation's key that holds ``goals`` (``"achieved_goal"`` for where the agent is)
+        """
         assert self.subgoal_space is not None
         if self.low_normalizer is not None:
-            goals = self.low_normalizer.unnormalize_goal(goals, "desired_goal")
+            goals = self.low_normalizer.unnormalize_goal(goals, key)
         return self.subgoal_space.to_unit(self.subgoal_space.project(goals))
 
     def _collecting_high_level_actions(self, observation: DictObs) -> np.ndarray:

@@ -132,7 +132,8 @@ def main() -> None:
     parser.add_argument("--sampled", action="store_true", help="also act as training collects: " + ", ".join(SAMPLED_CASES))
     args = parser.parse_args()
     measure_sampled = functools.partial(measure, sampled=args.sampled)
-    measure_runs(parser, args, measure_sampled, "planner_share.json", ("case", "success", "planned_share"))
+    columns = ("case", "success", "planned_share", "subgoal_to_goal", "subgoal_to_achieved")
+    measure_runs(parser, args, measure_sampled, "planner_share.json", columns)
 
 
 if __name__ == "__main__":
