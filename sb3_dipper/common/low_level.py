@@ -130,12 +130,18 @@ class SubgoalNormalizer:
     def normalize_reward(self, reward: np.ndarray) -> np.ndarray:
         return reward
 
+    def goal_mean_and_std(self, key: str, goal_dim: int) -> tuple[np.ndarray, np.ndarray]:
+        """The mean and scale with which a base ``achieved_goal`` or ``desired_goal`` of ``goal_dim`` entries is
+        normalised (zeros and ones where it is not): its original value is ``mean + std * normalised``."""
+        if key not in self.goal_statistics:
+            return np.zeros(goal_dim), np.ones(goal_dim)
+        mean, var = self.goal_statistics[key]
+        return mean, np.sqrt(var + self.epsilon)
+
     def unnormalize_goal(self, value: np.ndarray, key: str) -> np.ndarray:
         """Original values of a normalised base ``achieved_goal`` or ``desired_goal``."""
-        if key not in self.goal_statistics:
-            return value
-        mean, var = self.goal_statistics[key]
-        return value * np.sqrt(var + self.epsilon) + mean
+        mean, std = self.goal_mean_and_std(key, np.shape(value)[-1])
+        return value * std + mean
 
     def normalize_goal(self, value: np.ndarray, key: str) -> np.ndarray:
         """Normalise an original base ``achieved_goal`` or ``desired_goal``."""

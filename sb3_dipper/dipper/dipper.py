@@ -373,9 +373,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         assert self.subgoal_space is not None
         goal_dim = self.observation_space["desired_goal"].shape[0]  # type: ignore[index]
         mean, std = np.zeros(goal_dim), np.ones(goal_dim)
-        if self.low_normalizer is not None and "desired_goal" in self.low_normalizer.goal_statistics:
-            mean, var = self.low_normalizer.goal_statistics["desired_goal"]
-            std = np.sqrt(var + self.low_normalizer.epsilon)
+        if self.low_normalizer is not None:
+            mean, std = self.low_normalizer.goal_mean_and_std("desired_goal", goal_dim)
         self.policy.set_goal_anchor(*self.subgoal_space.goal_unit_map(mean, std))
 
     def _check_planner(self) -> None:
