@@ -120,13 +120,13 @@ __all__ = [
 ]
 
 
-def saved_in_old_form(path, old_path, group):
+def saved_in_old_form(path, old_path, group, newer_keys=()):
     """Rewrite the model file ``path`` at ``old_path`` as it was saved before the dict parameter ``group`` existed:
-    each of its keys an attribute of its own in the saved data."""
+    each of its keys an attribute of its own in the saved data, but ``newer_keys``, which came after the dict did."""
     with zipfile.ZipFile(path) as archive:
         files = {name: archive.read(name) for name in archive.namelist()}
     data = json.loads(files["data"])
-    data.update(data.pop(group))
+    data.update({key: value for key, value in data.pop(group).items() if key not in newer_keys})
     files["data"] = json.dumps(data).encode()
     with zipfile.ZipFile(old_path, "w") as archive:
         for name, content in files.items():

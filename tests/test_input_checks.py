@@ -101,6 +101,7 @@ BAD_SWITCH_SETTINGS = [
     ("value_score_coef", -1e-6, NON_NEGATIVE),
     ("value_score_coef", INF, NON_NEGATIVE),
     ("goal_subgoal_prob", 1.5, PROBABILITY),
+    ("goal_episode_prob", -0.1, PROBABILITY),
     ("reference", "previous", r"'previous': choose one of \('uniform', 'averaged'\)"),
     ("value_reg", "papper", r"'papper': choose one of \('paper', 'score', 'reparam'\)"),
 ]

@@ -2,6 +2,7 @@
 DIPPER's subgoals with the subgoal planner (the planner's share, zoo_scripts/research/planner_share.py), and DIPPER's planning
 parameters before ``planner_kwargs``."""
 
+import itertools
 import json
 import math
 import re
@@ -577,6 +578,46 @@ def test_goal_subgoals_execute_the_envs_goal_in_training_only(normalize):
     assert not np.allclose(model.subgoal_space.to_world(predicted), goals, atol=1e-2)
 
 
+def test_goal_episodes_are_whole_control_episodes_in_training_only():
+    model = tiny_model(DIPPER, short_maze(n_envs=4), switch_kwargs=dict(goal_episode_prob=0.5), random_subgoal_prob=0.5)
+    decisions = []  # per decision and env: (whether its episode had begun, driven by the goal, action, goal action)
+    collect = model._training_high_level_actions
+
+    def recorded(observation):
+        begun = [len(steps) > 0 for steps in model.trajectory_buffer._open]
+        actions = collect(observation)
+        if model.num_timesteps >= model.learning_starts:
+            assert not (model.last_random_subgoals & model.goal_episodes).any()  # the control is not explored
+            goal_actions = model._subgoal_actions(observation["desired_goal"])
+            decisions.append((np.array(begun), model.goal_episodes.copy(), actions.copy(), goal_actions))
+        return actions
+
+    model._training_high_level_actions = recorded
+    model.learn(600)
+    assert len(decisions) > 10
+    for (_, before, _, _), (begun, now, _, _) in itertools.pairwise(decisions):
+        np.testing.assert_array_equal(now[begun], before[begun])  # drawn once per episode
+    flags = np.concatenate([now for _, now, _, _ in decisions])
+    assert 0.2 < flags.mean() < 0.8
+    for _, now, actions, goal_actions in decisions:
+        np.testing.assert_allclose(actions[now], goal_actions[now], atol=1e-6)
+        assert not np.isclose(actions[~now], goal_actions[~now], atol=1e-3).all(axis=1).any()
+    logged = model._option_metrics["goal_episode_share"]  # rollout/goal_episode_share averages these
+    assert np.mean(logged) == pytest.approx(flags[-len(logged) :].mean())
+    # predict proposes with the policy; the switch is a training-only teacher.
+    observation = model.env.reset()
+    predicted = model._high_level_actions(observation, deterministic=True)
+    assert not np.isclose(predicted, model._subgoal_actions(observation["desired_goal"]), atol=1e-3).all(axis=1).any()
+
+
+def test_goal_episodes_are_off_by_default_and_draw_nothing():
+    model = tiny_model(DIPPER, short_maze(n_envs=2))
+    state = model._rng.bit_generator.state
+    model._draw_goal_episodes(np.ones(2, dtype=bool))
+    assert model.goal_episodes is None and model._rng.bit_generator.state == state
+    assert "goal_episode_share" not in model._option_metric_keys()
+
+
 def test_a_run_is_measured_on_the_env_kwargs_it_trained_with(tmp_path):
     from collections import OrderedDict
 
@@ -745,6 +786,8 @@ def test_the_switches_as_parameters_still_work_and_warn_naming_switch_kwargs(tmp
     with pytest.warns(DeprecationWarning, match=r"DIPPER.reference is deprecated: use model.switch_kwargs\['reference'\]"):
         old.reference = "averaged"
     assert old.switch_kwargs["reference"] == "averaged"
+    with pytest.raises(TypeError, match="goal_episode_prob"):  # a switch born in switch_kwargs has no older form
+        tiny_model(DIPPER, short_maze(), goal_episode_prob=0.5)
     # The model has no averaged actor: the switch, now set, is refused when it would act.
     with pytest.raises(ValueError, match=r"switch_kwargs\['reference'\]='averaged' needs an averaged actor"):
         old.learn(10)
@@ -755,7 +798,7 @@ def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
     model.learn(100)
     model.save(tmp_path / "new.zip")
     # The file as DIPPER wrote it before switch_kwargs: each switch an attribute of its own.
-    saved_in_old_form(tmp_path / "new.zip", tmp_path / "old.zip", "switch_kwargs")
+    saved_in_old_form(tmp_path / "new.zip", tmp_path / "old.zip", "switch_kwargs", newer_keys=("goal_episode_prob",))
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use

@@ -68,6 +68,18 @@ DEFAULT_SWITCH_KWARGS: dict[str, Any] = dict(
     goal_subgoal_prob=0.0,
     value_reg="paper",
     value_score_coef=1e-6,
+    goal_episode_prob=0.0,
+)
+# The switches that were DIPPER's parameters before switch_kwargs (still taken as parameters, deprecated).
+LEGACY_SWITCHES = (
+    "nll_coef",
+    "label_smoothing",
+    "reference",
+    "hindsight_actions",
+    "truncate_at_goal",
+    "goal_subgoal_prob",
+    "value_reg",
+    "value_score_coef",
 )
 
 
@@ -95,6 +107,7 @@ def checked_switch_kwargs(switch_kwargs: Mapping[str, Any]) -> dict[str, Any]:
         )
         settings["reference"] = as_choice("switch_kwargs['reference']", settings["reference"], REFERENCE_POLICIES)
         settings["goal_subgoal_prob"] = as_float("switch_kwargs['goal_subgoal_prob']", settings["goal_subgoal_prob"], 0.0, 1.0)
+        settings["goal_episode_prob"] = as_float("switch_kwargs['goal_episode_prob']", settings["goal_episode_prob"], 0.0, 1.0)
         settings["value_reg"] = as_choice("switch_kwargs['value_reg']", settings["value_reg"], VALUE_REGULARIZERS)
         settings["value_score_coef"] = as_float(
             "switch_kwargs['value_score_coef']", settings["value_score_coef"], 0.0, reason="0 turns the value score off"
@@ -137,11 +150,13 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         (probability that a training subgoal is the env's goal itself; 0: off), ``value_reg`` (how lambda enters:
         ``"paper"``, Eq. 9's ``-lambda * sum_t (V^L - V^L_m)`` in the DPO logit; ``"score"``, the PIPER code's
         ``value_score_coef * sum_t V^L(s_t, g_t)`` added to the preference score at labelling; ``"reparam"``,
-        ``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss) and ``value_score_coef`` (the weight of that sum
+        ``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss), ``value_score_coef`` (the weight of that sum
         with ``"score"``, in place of lambda; default 1e-6, the PIPER code's ``q_reg``, so that the value only breaks
-        ties), for example ``dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True)``
+        ties) and ``goal_episode_prob`` (probability that an env's training episode is driven by the goal as every
+        subgoal, the control, so that pairs compare whole control trajectories with the policy's; 0: off), for example
+        ``dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True)``
         (:data:`DEFAULT_SWITCH_KWARGS`); ``model.switch_kwargs`` holds them all, and a key changed there acts from the
-        next :meth:`learn`. Each key is also taken as a parameter of its own, deprecated
+        next :meth:`learn`. Each key but ``goal_episode_prob`` is also taken as a parameter of its own, deprecated
     :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
         :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
         ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
@@ -207,7 +222,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 ("planning_value_threshold", "value_threshold"),
             )
         },
-        **{name: MovedParameter("switch_kwargs", name) for name in DEFAULT_SWITCH_KWARGS},
+        **{name: MovedParameter("switch_kwargs", name) for name in LEGACY_SWITCHES},
     }
     # The switches checked and completed with their defaults (a model saved before a switch existed loads with it).
     switch_kwargs: dict[str, Any]
@@ -347,6 +362,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self._value_snapshot = copy.deepcopy(self.lower.critic).requires_grad_(False)
         # Which envs' last higher-level decision was the planner's waypoint instead of the policy's proposal.
         self.last_planned = np.zeros(self.n_envs, dtype=bool)
+        # Which envs' training episode the goal drives (goal_episode_prob); None: drawn at the next decision.
+        self.goal_episodes: np.ndarray | None = None
         self._refresh_goal_anchor()
 
     def _apply_switches(self) -> None:
@@ -401,7 +418,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _option_metric_keys(self) -> tuple[str, ...]:
         planned = ("planned_share",) if self.planner.proposes_subgoals else ()
-        return (*super()._option_metric_keys(), *planned)
+        goal_driven = ("goal_episode_share",) if self.switch_kwargs["goal_episode_prob"] > 0.0 else ()
+        return (*super()._option_metric_keys(), *planned, *goal_driven)
 
     def _setup_learn(
         self,
@@ -454,9 +472,34 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             goal_rows = (self._rng.random(self.n_envs) < goal_subgoal_prob) & ~self.last_random_subgoals
             actions[goal_rows] = self._subgoal_actions(observation["desired_goal"])[goal_rows]
             self.last_planned &= ~goal_rows
+        if self.switch_kwargs["goal_episode_prob"] > 0.0 and self.num_timesteps >= self.learning_starts:
+            actions = self._drive_goal_episodes(observation, actions)
         if self.planner.proposes_subgoals and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
+
+    def _drive_goal_episodes(self, observation: DictObs, actions: np.ndarray) -> np.ndarray:
+        """``goal_episode_prob``: the goal is every subgoal of the envs whose episode :attr:`goal_episodes` marks (the
+        control, not explored and not planned), so that stored trajectories include whole control episodes."""
+        if self.goal_episodes is None:
+            self._draw_goal_episodes(np.ones(self.n_envs, dtype=bool))
+        assert self.goal_episodes is not None
+        goal_rows = self.goal_episodes
+        actions[goal_rows] = self._subgoal_actions(observation["desired_goal"])[goal_rows]
+        self.last_planned &= ~goal_rows
+        self.last_random_subgoals &= ~goal_rows
+        self._option_metrics["goal_episode_share"].extend(goal_rows.astype(np.float64))
+        return actions
+
+    def _draw_goal_episodes(self, starting: np.ndarray) -> None:
+        """Whether the envs of the mask ``starting`` have their next episode driven by the goal (``goal_episode_prob``)."""
+        probability = self.switch_kwargs["goal_episode_prob"]
+        if probability == 0.0:  # no draw: the random stream stays that of a run without the switch
+            return
+        if self.goal_episodes is None:
+            self.goal_episodes = np.zeros(self.n_envs, dtype=bool)
+        starting = np.asarray(starting, dtype=bool)
+        self.goal_episodes[starting] = self._rng.random(int(starting.sum())) < probability
 
     def _lower_level_value(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
         """The lower level's value ``min_i Q_i(s, g, mu(s, g))`` of reaching each target (world units) from each start
@@ -484,10 +527,13 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         assert self.option_env is not None and self.option_env.reached_obs is not None
         self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
         self.planner.trajectories_finished(int(np.sum(dones)), self.trajectory_buffer, self._lower_level_value)
+        if self.goal_episodes is not None:
+            self._draw_goal_episodes(dones)
 
     def _end_open_episodes(self) -> None:
         super()._end_open_episodes()
         self.trajectory_buffer.discard_open()
+        self.goal_episodes = None  # the envs start new episodes: each is drawn at its first decision
 
     # ---------------------------------------------------------------------------------------------------- training
 
@@ -670,7 +716,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _excluded_save_params(self) -> list[str]:
         # The pair sampler and the goal test are rebuilt with the model (the goal test holds the env).
-        return [*super()._excluded_save_params(), "last_planned", "_pair_sampler", "_goal_reached"]
+        return [*super()._excluded_save_params(), "last_planned", "goal_episodes", "_pair_sampler", "_goal_reached"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
