@@ -20,7 +20,10 @@ exactly one configuration: the run label of ``docs/benchmarks/paper-tasks-cpu.cs
 
 The matrix is written between ``<!-- results-matrix -->`` markers, the figure (one panel per task, one curve per column
 that has learning curves: the mean over seeds and a band of one standard deviation) to
-``docs/benchmarks/paper-tasks.png`` and the cells to ``docs/benchmarks/paper-tasks-matrix.csv``.
+``docs/benchmarks/paper-tasks.png`` and the cells to ``docs/benchmarks/paper-tasks-matrix.csv``. The paper's ablations
+of lambda and beta on the fixed pick-and-place (``docs/benchmarks/ablations-pnp-fixed.csv``, the paper's values from the
+``dipper_paper`` rows) go between ``<!-- ablations -->`` markers of ``BENCHMARKS.md``, their figure (one panel per
+parameter) to ``docs/benchmarks/ablations-pnp-fixed.png``.
 """
 
 from __future__ import annotations
@@ -168,6 +171,29 @@ ANCHORS = {  # PIPER's public figures (the authors' code), read off their curves
 }
 
 
+ABLATIONS_CSV = "ablations-pnp-fixed.csv"
+# The paper's ablations of its DIPPER on the fixed pick-and-place: (parameter, [(value, its runs)]), the rest the paper's.
+ABLATIONS: list[tuple[str, list[tuple[str, Learning]]]] = [
+    (
+        "lambda",
+        [
+            ("0", Learning("dipper_paper-lambda0", ABLATIONS_CSV)),
+            ("0.01", Learning("dipper_paper-lambda0.01", ABLATIONS_CSV)),
+            ("0.1 (the paper's)", Learning("dipper_paper")),
+            ("1", Learning("dipper_paper-lambda1", ABLATIONS_CSV)),
+        ],
+    ),
+    (
+        "beta",
+        [
+            ("0.01", Learning("dipper_paper-beta0.01", ABLATIONS_CSV)),
+            ("0.1 (the paper's)", Learning("dipper_paper")),
+            ("1", Learning("dipper_paper-beta1", ABLATIONS_CSV)),
+        ],
+    ),
+]
+
+
 @dataclass
 class Cell:
     success: list[float]  # one per seed
@@ -266,6 +292,23 @@ def whose_success() -> str:
     return "\n".join(lines)
 
 
+def ablations() -> tuple[str, dict[str, dict[str, list[plot.Curve]]]]:
+    """The ablation table (per value: success at the budget, evaluations with any success per seed, the mean success
+    over every evaluation) and the figure's panels, one per parameter."""
+    header = ["parameter", "value", "success at 150k", "evaluations with success, per seed", "mean over evaluations"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    panels: dict[str, dict[str, list[plot.Curve]]] = {}
+    for parameter, settings in ABLATIONS:
+        panel = panels.setdefault(f"{parameter}, {TASKS[PNP_FIXED][1]}", {})
+        for value, source in settings:
+            final, curves = learning_cell(PNP_FIXED, source)
+            panel[f"{parameter} = {value}"] = curves
+            counts = ", ".join(f"{int(np.sum(success > 0))} of {len(success)}" for _, success in curves)
+            overall = f"{np.mean(np.concatenate([success for _, success in curves])):.2f}" if curves else ""
+            lines.append(f"| {parameter} | {value} | {final.text()} | {counts} | {overall} |")
+    return "\n".join(lines), panels
+
+
 def write_between_markers(path: Path, text: str, name: str = "results-matrix") -> None:
     """Replace what lies between ``<!-- name -->`` and ``<!-- /name -->`` in ``path`` by ``text``."""
     marker = re.compile(rf"(<!-- {name} -->\n).*?(<!-- /{name} -->)", re.DOTALL)
@@ -281,16 +324,19 @@ def main() -> None:
     args = parser.parse_args()
     tables, csv_rows, panels = matrix()
     whose = whose_success()
-    print(tables, whose, sep="\n\n")
+    ablation_table, ablation_panels = ablations()
+    print(tables, whose, ablation_table, sep="\n\n")
     if args.write:
         for document in (REPO / "BENCHMARKS.md", REPO / "README.md"):
             write_between_markers(document, tables)
         write_between_markers(REPO / "BENCHMARKS.md", whose, "whose-success")
+        write_between_markers(REPO / "BENCHMARKS.md", ablation_table, "ablations")
         lines = io.StringIO()
         csv.writer(lines, lineterminator="\n").writerows(csv_rows)
         write_bytes_atomically(RESULTS / "paper-tasks-matrix.csv", lines.getvalue().encode())
         figure = plot.draw_success({task: lines for task, lines in panels.items() if lines}, labels=str)
         plot.save(figure, RESULTS / "paper-tasks", ["png"])
+        plot.save(plot.draw_success(ablation_panels, labels=str), RESULTS / "ablations-pnp-fixed", ["png"])
 
 
 if __name__ == "__main__":

@@ -72,3 +72,22 @@ def test_every_column_names_one_configuration_per_task():
     assert rows[0] == ["task", "column", "source", "seeds", "success"] and all(len(row) == 5 for row in rows)
     for heading, sources in [*report.DIPPER_COLUMNS, *report.HIERARCHICAL_COLUMNS, *report.FLAT_COLUMNS]:
         assert set(sources) <= set(report.TASKS), heading
+
+
+def test_the_ablations_take_the_papers_value_from_its_own_rows(results, monkeypatch):
+    (results / "ablations.csv").write_text(
+        LEARNING.splitlines()[0]
+        + "\nFetchPickAndPlaceFixed-v0,dipper_paper-beta1,0,75000,1.0000,,,0.1,,1"
+        + "\nFetchPickAndPlaceFixed-v0,dipper_paper-beta1,0,150000,0.0000,,,0.1,,1\n"
+    )
+    monkeypatch.setattr(
+        report,
+        "ABLATIONS",
+        [("beta", [("0.1", report.Learning("sac")), ("1", report.Learning("dipper_paper-beta1", "ablations.csv"))])],
+    )
+    table, panels = report.ablations()
+    rows = table.splitlines()
+    assert rows[2] == "| beta | 0.1 | 0.50 +- 0.50 (2) | 1 of 2, 1 of 1 | 0.67 |"
+    assert rows[3] == "| beta | 1 | 0.00 (1) | 1 of 2 | 0.50 |"
+    assert list(panels) == ["beta, fixed pick-and-place"]
+    assert list(panels["beta, fixed pick-and-place"]) == ["beta = 0.1", "beta = 1"]
