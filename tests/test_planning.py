@@ -602,12 +602,24 @@ def test_goal_episodes_are_whole_control_episodes_in_training_only():
     for _, now, actions, goal_actions in decisions:
         np.testing.assert_allclose(actions[now], goal_actions[now], atol=1e-6)
         assert not np.isclose(actions[~now], goal_actions[~now], atol=1e-3).all(axis=1).any()
+    finished = [model._option_metrics[f"{driver}_episode_success"] for driver in ("goal", "policy")]
+    assert all(len(successes) > 0 and set(successes) <= {0.0, 1.0} for successes in finished)
     logged = model._option_metrics["goal_episode_share"]  # rollout/goal_episode_share averages these
     assert np.mean(logged) == pytest.approx(flags[-len(logged) :].mean())
     # predict proposes with the policy; the switch is a training-only teacher.
     observation = model.env.reset()
     predicted = model._high_level_actions(observation, deterministic=True)
     assert not np.isclose(predicted, model._subgoal_actions(observation["desired_goal"]), atol=1e-3).all(axis=1).any()
+
+
+def test_goal_episodes_log_their_success_apart_from_the_policys():
+    model = tiny_model(DIPPER, short_maze(n_envs=3), switch_kwargs=dict(goal_episode_prob=0.5))
+    model._setup_learn(10)
+    model.goal_episodes = np.array([True, False, True])
+    infos = [{"is_success": 1.0}, {"is_success": 0.0}, {"is_success": 1.0}]
+    model._record_success_by_driver(np.array([1, 1, 0]), infos)  # the third env's episode goes on
+    assert list(model._option_metrics["goal_episode_success"]) == [1.0]
+    assert list(model._option_metrics["policy_episode_success"]) == [0.0]
 
 
 def test_goal_episodes_are_off_by_default_and_draw_nothing():

@@ -418,7 +418,9 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _option_metric_keys(self) -> tuple[str, ...]:
         planned = ("planned_share",) if self.planner.proposes_subgoals else ()
-        goal_driven = ("goal_episode_share",) if self.switch_kwargs["goal_episode_prob"] > 0.0 else ()
+        goal_driven: tuple[str, ...] = ()
+        if self.switch_kwargs["goal_episode_prob"] > 0.0:
+            goal_driven = ("goal_episode_share", "goal_episode_success", "policy_episode_success")
         return (*super()._option_metric_keys(), *planned, *goal_driven)
 
     def _setup_learn(
@@ -491,6 +493,16 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self._option_metrics["goal_episode_share"].extend(goal_rows.astype(np.float64))
         return actions
 
+    def _record_success_by_driver(self, dones: np.ndarray, infos: list[dict[str, Any]]) -> None:
+        """The success of each finished training episode, as ``rollout/goal_episode_success`` where the goal drove it and
+        ``rollout/policy_episode_success`` where the higher level did: who succeeds in training, on the same tasks."""
+        assert self.goal_episodes is not None
+        for env_idx in np.flatnonzero(dones):
+            success = infos[env_idx].get("is_success")
+            if success is not None:
+                key = "goal_episode_success" if self.goal_episodes[env_idx] else "policy_episode_success"
+                self._option_metrics[key].append(float(success))
+
     def _draw_goal_episodes(self, starting: np.ndarray) -> None:
         """Whether the envs of the mask ``starting`` have their next episode driven by the goal (``goal_episode_prob``)."""
         probability = self.switch_kwargs["goal_episode_prob"]
@@ -528,6 +540,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
         self.planner.trajectories_finished(int(np.sum(dones)), self.trajectory_buffer, self._lower_level_value)
         if self.goal_episodes is not None:
+            self._record_success_by_driver(dones, infos)
             self._draw_goal_episodes(dones)
 
     def _end_open_episodes(self) -> None:
