@@ -78,6 +78,8 @@ DIAGNOSTICS = (
     Diagnostic("subgoal_distance", ("rollout/subgoal_distance",), plot.HIERARCHICAL_METRICS["rollout/subgoal_distance"]),
     Diagnostic("low_value", ("rollout/low_value",), plot.HIERARCHICAL_METRICS["rollout/low_value"]),
     Diagnostic("planned_share", ("rollout/planned_share",), "subgoals the planner proposed", SHARE),
+    Diagnostic("goal_episode_success", ("rollout/goal_episode_success",), "training success, goal-driven episodes", SHARE),
+    Diagnostic("policy_episode_success", ("rollout/policy_episode_success",), "training success, policy's episodes", SHARE),
 )
 KEY_COLUMNS = ("env", "config", "seed", "timesteps")
 COLUMNS = (*KEY_COLUMNS, "success", *(diagnostic.column for diagnostic in DIAGNOSTICS))
