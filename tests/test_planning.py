@@ -602,6 +602,8 @@ def test_goal_episodes_are_whole_control_episodes_in_training_only():
     for _, now, actions, goal_actions in decisions:
         np.testing.assert_allclose(actions[now], goal_actions[now], atol=1e-6)
         assert not np.isclose(actions[~now], goal_actions[~now], atol=1e-3).all(axis=1).any()
+    stored = model.trajectory_buffer.goal_driven[: len(model.trajectory_buffer)]  # the buffer knows who drove
+    assert stored.any() and not stored.all()
     finished = [model._option_metrics[f"{driver}_episode_success"] for driver in ("goal", "policy")]
     assert all(len(successes) > 0 and set(successes) <= {0.0, 1.0} for successes in finished)
     logged = model._option_metrics["goal_episode_share"]  # rollout/goal_episode_share averages these

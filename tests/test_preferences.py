@@ -39,12 +39,15 @@ def goal_reached(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
     return np.linalg.norm(achieved - desired, axis=-1) <= 0.5
 
 
-def add_trajectory(buffer: TrajectoryBuffer, path: list[tuple[float, float]], goal: np.ndarray = GOAL) -> None:
+def add_trajectory(
+    buffer: TrajectoryBuffer, path: list[tuple[float, float]], goal: np.ndarray = GOAL, goal_driven: list[bool] | None = None
+) -> None:
     position = np.zeros(2, dtype=np.float32)
     for step, point in enumerate(path):
         obs = {"observation": position[None], "achieved_goal": position[None], "desired_goal": goal[None]}
         done = np.array([step == len(path) - 1])
-        buffer.add(obs, np.zeros((1, 2), np.float32), np.array([point], dtype=np.float32), done)
+        driven = None if goal_driven is None else np.array([goal_driven[step]])
+        buffer.add(obs, np.zeros((1, 2), np.float32), np.array([point], dtype=np.float32), done, goal_driven=driven)
         position = np.array(point, dtype=np.float32)
 
 
@@ -125,6 +128,44 @@ def test_without_hindsight_each_trajectory_keeps_its_own_goal():
             assert any(np.allclose(pairs.observations["desired_goal"][side, pair, 0], goal) for goal in stored_goals)
 
 
+def test_a_trajectory_is_goal_driven_only_if_every_step_was():
+    buffer = TrajectoryBuffer(capacity=4, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal_driven=[True, True])
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal_driven=[False, True])  # the goal took over mid-episode
+    add_trajectory(buffer, [(1, 0), (2, 0)])  # no step's driver given
+    buffer.add(*_one_step(), np.array([False]), goal_driven=np.array([True]))
+    buffer.discard_open()  # an interrupted goal-driven episode does not mark the next
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal_driven=[False, False])
+    assert buffer.goal_driven.tolist() == [True, False, False, False]
+
+
+def _one_step() -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    zero = np.zeros((1, 2), np.float32)
+    return {"observation": zero, "achieved_goal": zero, "desired_goal": GOAL[None]}, zero, zero
+
+
+def test_a_pair_of_the_goal_driven_control_and_another_keeps_the_envs_goals():
+    buffer = TrajectoryBuffer(capacity=4, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal=np.array([1.0, 1.0], np.float32), goal_driven=[True, True])
+    add_trajectory(buffer, [(0, 1), (0, 2)], goal=np.array([-1.0, -1.0], np.float32))
+    add_trajectory(buffer, [(0, -1), (0, -2)], goal=np.array([-1.0, 1.0], np.float32))
+    pairs = sample_trajectory_pairs(buffer, 200, hindsight_goal_prob=1.0, subgoal_space=SPACE, rng=np.random.default_rng(2))
+    goals = pairs.observations["desired_goal"][:, :, 0]
+    stored = buffer.observations["desired_goal"][:3, 0]
+    contrast = 0
+    for pair in range(200):
+        own = [np.any(np.all(goals[side, pair] == stored, axis=1)) for side in (0, 1)]
+        shared = np.array_equal(goals[0, pair], goals[1, pair])
+        # Which trajectories the pair holds, told by their stored goals (each trajectory here has its own).
+        drivers = {int(np.flatnonzero(np.all(goals[side, pair] == stored, axis=1))[0]) == 0 for side in (0, 1) if own[side]}
+        if len(drivers) == 2:  # the goal-driven trajectory and a policy's: both keep the env's goals
+            contrast += 1
+            assert all(own) and not shared
+        else:
+            assert shared  # every other pair shares a hindsight goal (hindsight_goal_prob=1)
+    assert contrast > 20
+
+
 def test_hindsight_actions_are_the_reached_subgoals_in_unit_coordinates(buffer):
     pairs = pairs_of(buffer, [0], [1])
     np.testing.assert_allclose(pairs.reached_actions[0, 0], [[0.2, 0.0], [0.4, 0.0], [0.6, 0.0]])
@@ -171,6 +212,21 @@ def test_checkpointed_trajectories_and_pairs_are_restored(buffer, tmp_path):
     restored = load_preference_data(tmp_path / "high.npz", restored_buffer, label_budget=10)
     assert len(restored) == 2 and restored.capacity == 10 and len(restored_buffer) == len(buffer)
     np.testing.assert_array_equal(restored.all_pairs().labels, dataset.all_pairs().labels)
+
+
+def test_trajectories_saved_before_they_recorded_their_driver_load_as_nobodys_control(buffer, tmp_path):
+    save_preference_data(tmp_path / "high.npz", buffer, PreferenceDataset(capacity=10))
+    with np.load(tmp_path / "high.npz") as saved:
+        arrays = {key: saved[key] for key in saved.files if key != "trajectories/goal_driven"}
+    np.savez(tmp_path / "old.npz", **arrays)
+    restored = TrajectoryBuffer(capacity=10, max_length=3, observation_space=OBS_SPACE, action_dim=2)
+    restored.goal_driven[:] = True
+    load_preference_data(tmp_path / "old.npz", restored, label_budget=10)
+    assert not restored.goal_driven.any() and len(restored) == len(buffer)
+    arrays["trajectories/goal_driven"] = np.full(10, 2)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match="trajectories/goal_driven must hold booleans"):
+        load_preference_data(tmp_path / "bad.npz", restored, label_budget=10)
 
 
 def test_unlabelled_pairs_are_refused(buffer):

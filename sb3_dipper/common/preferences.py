@@ -79,7 +79,9 @@ def sample_trajectory_pairs(
     subgoal_space: SubgoalSpace,
     rng: np.random.Generator,
 ) -> TrajectoryPairs:
-    """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them."""
+    """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them, except
+    a pair of a goal-driven trajectory (:attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.goal_driven`) and
+    another, which compares the control with the other driver on the env's own goals."""
     if len(buffer) < 2:
         raise ValueError("Preference pairs need at least two finished higher-level trajectories")
     indices = rng.integers(len(buffer), size=(2, n_pairs))
@@ -87,7 +89,8 @@ def sample_trajectory_pairs(
     next_achieved_goals = buffer.next_achieved_goals[indices]
     mask = np.stack([buffer.mask(indices[0]), buffer.mask(indices[1])])
 
-    share_goal = rng.random(n_pairs) < hindsight_goal_prob
+    contrast = buffer.goal_driven[indices[0]] != buffer.goal_driven[indices[1]]
+    share_goal = (rng.random(n_pairs) < hindsight_goal_prob) & ~contrast
     source = rng.integers(2, size=n_pairs)
     lengths = buffer.lengths[indices[source, np.arange(n_pairs)]]
     step = (rng.random(n_pairs) * lengths).astype(np.int64)
@@ -540,8 +543,11 @@ def _with_prefix(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, np.nda
 def _checked_trajectory_state(
     arrays: dict[str, np.ndarray], trajectory_buffer: TrajectoryBuffer, source: str
 ) -> dict[str, np.ndarray]:
-    """The stored trajectories, if they fit ``trajectory_buffer`` exactly (same keys, shapes and capacity)."""
+    """The stored trajectories, if they fit ``trajectory_buffer`` exactly (same keys, shapes and capacity). A file saved
+    before trajectories recorded who drove them has no ``goal_driven``: none was the goal-driven control's."""
     expected = trajectory_buffer.state_dict()
+    if "goal_driven" not in arrays and "lengths" in arrays:
+        arrays = {**arrays, "goal_driven": np.zeros(arrays["lengths"].shape, dtype=bool)}
     missing = sorted(set(expected) - set(arrays))
     unknown = sorted(set(arrays) - set(expected))
     if missing:
@@ -569,6 +575,8 @@ def _checked_trajectory_state(
         raise ValueError(f"Malformed preference file {source}: trajectory lengths or position out of range")
     if full not in (0, 1):
         raise ValueError(f"Malformed preference file {source}: trajectories/position must be [position, 0 or 1]")
+    if not np.all(np.isin(arrays["goal_driven"], (0, 1))):
+        raise ValueError(f"Malformed preference file {source}: trajectories/goal_driven must hold booleans (0 or 1)")
     return {key: arrays[key] for key in expected}
 
 

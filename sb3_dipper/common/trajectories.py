@@ -2,7 +2,9 @@
 
 A trajectory is the sequence of higher-level decisions of one base-env episode: for each option ``t`` the observation
 ``s_t`` (original values, all keys), the higher-level action ``u_t`` in ``[-1, 1]^d`` and the achieved goal
-``ag_{t+1}`` reached when the option ended. Trajectories are stored padded to ``max_length`` with a mask.
+``ag_{t+1}`` reached when the option ended. Trajectories are stored padded to ``max_length`` with a mask, each with
+whether the env's goal was every subgoal of it (:attr:`TrajectoryBuffer.goal_driven`: the goal-driven control's
+trajectories, which DIPPER's ``goal_episode_prob`` collects).
 """
 
 from __future__ import annotations
@@ -37,15 +39,33 @@ class TrajectoryBuffer:
         self.actions = np.zeros((capacity, max_length, action_dim), dtype=np.float32)
         self.next_achieved_goals = np.zeros((capacity, max_length, *goal_shape), dtype=np.float32)
         self.lengths = np.zeros(capacity, dtype=np.int64)
+        # Whether the env's goal was the subgoal at every step (the collector says so; nothing compares subgoals).
+        self.goal_driven = np.zeros(capacity, dtype=bool)
         self.pos = 0
         self.full = False
         self._open: list[list[tuple[DictObs, np.ndarray, np.ndarray]]] = [[] for _ in range(n_envs)]
+        self._open_goal_driven = np.ones(n_envs, dtype=bool)
 
     def __len__(self) -> int:
         return self.capacity if self.full else self.pos
 
-    def add(self, obs: DictObs, actions: np.ndarray, next_achieved_goals: np.ndarray, dones: np.ndarray) -> None:
-        """Add one higher-level step of every env (original observations); close the trajectories of done envs."""
+    def add(
+        self,
+        obs: DictObs,
+        actions: np.ndarray,
+        next_achieved_goals: np.ndarray,
+        dones: np.ndarray,
+        goal_driven: np.ndarray | None = None,
+    ) -> None:
+        """Add one higher-level step of every env (original observations); close the trajectories of done envs.
+
+        :param goal_driven: per env, whether this step's subgoal was the env's goal (``None``: no env's was); a
+            trajectory is :attr:`goal_driven` if every one of its steps was
+        """
+        if goal_driven is None:
+            self._open_goal_driven[:] = False
+        else:
+            self._open_goal_driven &= np.asarray(goal_driven, dtype=bool)
         for env_idx in range(self.n_envs):
             step_obs = {key: value[env_idx].copy() for key, value in obs.items()}
             self._open[env_idx].append((step_obs, actions[env_idx].copy(), next_achieved_goals[env_idx].copy()))
@@ -64,12 +84,15 @@ class TrajectoryBuffer:
         self.next_achieved_goals[self.pos] = 0.0
         self.next_achieved_goals[self.pos, :length] = np.stack([step[2] for step in steps])
         self.lengths[self.pos] = length
+        self.goal_driven[self.pos] = self._open_goal_driven[env_idx]
+        self._open_goal_driven[env_idx] = True
         self.pos = (self.pos + 1) % self.capacity
         self.full = self.full or self.pos == 0
 
     def discard_open(self) -> None:
         """Drop unfinished trajectories (their env is being reset)."""
         self._open = [[] for _ in range(self.n_envs)]
+        self._open_goal_driven[:] = True
 
     def mask(self, indices: np.ndarray) -> np.ndarray:
         """``(len(indices), max_length)`` booleans: which steps of each trajectory are real."""
@@ -82,6 +105,7 @@ class TrajectoryBuffer:
             actions=self.actions,
             next_achieved_goals=self.next_achieved_goals,
             lengths=self.lengths,
+            goal_driven=self.goal_driven,
             position=np.array([self.pos, int(self.full)]),
         )
         return arrays
@@ -92,6 +116,8 @@ class TrajectoryBuffer:
         self.actions[...] = arrays["actions"]
         self.next_achieved_goals[...] = arrays["next_achieved_goals"]
         self.lengths[...] = arrays["lengths"]
+        self.goal_driven[...] = arrays["goal_driven"]
         self.pos, full = (int(value) for value in arrays["position"])
         self.full = bool(full)
         self._open = [[] for _ in range(self.n_envs)]
+        self._open_goal_driven[:] = True

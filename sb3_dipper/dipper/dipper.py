@@ -537,7 +537,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         infos: list[dict[str, Any]],
     ) -> None:
         assert self.option_env is not None and self.option_env.reached_obs is not None
-        self.trajectory_buffer.add(start_obs, high_actions, self.option_env.reached_obs["achieved_goal"], dones)
+        reached = self.option_env.reached_obs["achieved_goal"]
+        self.trajectory_buffer.add(start_obs, high_actions, reached, dones, goal_driven=self.goal_episodes)
         self.planner.trajectories_finished(int(np.sum(dones)), self.trajectory_buffer, self._lower_level_value)
         if self.goal_episodes is not None:
             self._record_success_by_driver(dones, infos)
