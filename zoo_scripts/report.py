@@ -81,7 +81,7 @@ Source = Learning | Evaluated
 
 # The DIPPER profile of hyperparams/dipper.yml on each task, and the runs of its controls.
 DIPPER_PROFILE: dict[str, Source] = {
-    PNP_FIXED: Learning("dipper-planner-fixed"),
+    PNP_FIXED: Learning("dipper-goal-episodes"),
     PNP: Learning("dipper-planner-fixed"),
     KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
     MAZE_FIXED: Learning("dipper_paper-low64"),
@@ -91,10 +91,9 @@ DIPPER_PROFILE: dict[str, Source] = {
 
 def final_models(case: str) -> dict[str, Source]:
     """The final models of the ``dipper`` profile's runs evaluated as ``case`` (``zoo_scripts/research/planner_share.py``)."""
-    fixed_planner = "planner-share-planner-fixed.csv"
     sources: dict[str, Source] = {
-        PNP_FIXED: Evaluated(fixed_planner, "FetchPickAndPlaceFixed", case),
-        PNP: Evaluated(fixed_planner, "FetchPickAndPlace-v4", case),
+        PNP_FIXED: Evaluated("planner-share-goal-episodes-profile.csv", "FetchPickAndPlaceFixed", case),
+        PNP: Evaluated("planner-share-planner-fixed.csv", "FetchPickAndPlace-v4", case),
     }
     # Without a planner the model as trained is its policy alone.
     kitchen_case = "as_trained" if case == "policy_alone" else case
