@@ -152,6 +152,8 @@ FLAT_COLUMNS: list[tuple[str, dict[str, Source]]] = [
 BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "HAC", "planner-share-baselines.csv", "/hac/"),
     (PNP_FIXED, "SAGA", "planner-share-baselines.csv", "/saga/"),
+    (PNP_FIXED, "PIPER", "planner-share-baselines.csv", "/piper/"),
+    (PNP_FIXED, "DIPPER-No-V", "planner-share-baselines.csv", "/dipper_nov/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
     (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
