@@ -654,12 +654,21 @@ class HierarchicalAlgorithm(CheckedLoading):
 
     def _draw_greedy_episodes(self, starting: np.ndarray) -> None:
         """``greedy_episode_prob``: whether the envs of the mask ``starting`` collect their next episode greedily."""
-        if self.greedy_episode_prob == 0.0:  # no draw: the random stream stays that of a run without the switch
+        if self.greedy_episode_prob == 0.0:  # a scripted lower level (RAPS's) has no greedy flags to keep
             return
-        if self.low_level.greedy is None:
-            self.low_level.greedy = np.zeros(self.n_envs, dtype=bool)
+        self.low_level.greedy = self._drawn_episode_flags(self.low_level.greedy, starting, self.greedy_episode_prob)
+
+    def _drawn_episode_flags(self, flags: np.ndarray | None, starting: np.ndarray, probability: float) -> np.ndarray | None:
+        """Per env, whether its episode takes a switch drawn once per episode with ``probability``: ``flags`` (all
+        ``False`` where ``None``) with the envs of the mask ``starting`` drawn anew. At probability 0 nothing is drawn,
+        so the random stream stays that of a run without the switch."""
+        if probability == 0.0:
+            return flags
+        if flags is None:
+            flags = np.zeros(self.n_envs, dtype=bool)
         starting = np.asarray(starting, dtype=bool)  # a mask, also where a VecEnv reports dones as numbers
-        self.low_level.greedy[starting] = self._rng.random(int(starting.sum())) < self.greedy_episode_prob
+        flags[starting] = self._rng.random(int(starting.sum())) < probability
+        return flags
 
     def _has_training_data(self) -> bool:
         """Whether the buffers can be sampled (a model resumed without its buffers must first collect some)."""

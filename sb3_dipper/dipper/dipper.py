@@ -505,13 +505,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _draw_goal_episodes(self, starting: np.ndarray) -> None:
         """Whether the envs of the mask ``starting`` have their next episode driven by the goal (``goal_episode_prob``)."""
-        probability = self.switch_kwargs["goal_episode_prob"]
-        if probability == 0.0:  # no draw: the random stream stays that of a run without the switch
-            return
-        if self.goal_episodes is None:
-            self.goal_episodes = np.zeros(self.n_envs, dtype=bool)
-        starting = np.asarray(starting, dtype=bool)
-        self.goal_episodes[starting] = self._rng.random(int(starting.sum())) < probability
+        self.goal_episodes = self._drawn_episode_flags(self.goal_episodes, starting, self.switch_kwargs["goal_episode_prob"])
 
     def _lower_level_value(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
         """The lower level's value ``min_i Q_i(s, g, mu(s, g))`` of reaching each target (world units) from each start
