@@ -18,6 +18,10 @@ exactly one configuration: the run label of ``docs/benchmarks/paper-tasks-cpu.cs
   ``planning="subgoal"``, whose planner marked every row as planned, so the preference-trained policy never acted;
 * the paper's DIPPER and the baselines.
 
+The task column names what every method that takes demonstrations learns from at the CPU profiles (the DART episodes
+where DIPPER's profile takes them); a cell learnt from other demonstrations is marked and the mark explained below the
+tables.
+
 The matrix is written between ``<!-- results-matrix -->`` markers, the figure (one panel per task, one curve per column
 that has learning curves: the mean over seeds and a band of one standard deviation) to
 ``docs/benchmarks/paper-tasks.png`` and the cells to ``docs/benchmarks/paper-tasks-matrix.csv``. The paper's ablations
@@ -58,14 +62,28 @@ TASKS = {  # task: (budget in primitive steps, short name)
     "FetchFourRoomMaze-v0": (700_000, "random Fetch mazes"),
 }
 PNP_FIXED, PUSH_FIXED, PNP, PUSH, KITCHEN, MAZE_FIXED, MAZE = TASKS
+# What every method that takes demonstrations learns from at the CPU profiles (the DART episodes where DIPPER's profile
+# takes them, the task's one scripted demonstration elsewhere); a cell learnt from other ones is marked.
+DEMONSTRATIONS = {
+    PNP_FIXED: "1 demonstration",
+    PUSH_FIXED: "1 demonstration",
+    PNP: "20 DART episodes",
+    PUSH: "200 DART episodes",
+    KITCHEN: "20 DART episodes",
+    MAZE_FIXED: "1 demonstration",
+    MAZE: "1 demonstration",
+}
+ONE_DEMONSTRATION = "†"
 
 
 @dataclass(frozen=True)
 class Learning:
-    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV."""
+    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV (``mark``: a cell learnt from other
+    demonstrations than the task's, :data:`DEMONSTRATIONS`)."""
 
     label: str
     csv: str = "paper-tasks-cpu.csv"
+    mark: str = ""
 
 
 @dataclass(frozen=True)
@@ -109,9 +127,9 @@ PLANNER_GOAL: dict[str, Source] = {
 }
 
 
-def everywhere(label: str, tasks: dict[str, str] | None = None) -> dict[str, Source]:
-    """``label`` on every task, or per task where ``tasks`` names another label (the same demonstrations as DIPPER)."""
-    return {task: Learning((tasks or {}).get(task, label)) for task in TASKS}
+def everywhere(label: str, tasks: dict[str, Learning] | None = None) -> dict[str, Source]:
+    """``label`` on every task, or per task where ``tasks`` names other runs."""
+    return {task: (tasks or {}).get(task, Learning(label)) for task in TASKS}
 
 
 # (heading, the source of each task's cell)
@@ -121,7 +139,13 @@ DIPPER_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("policy untrained", final_models("untrained_policy")),
     ("goal as every subgoal", final_models("lower_level_alone")),
     ("planner + goal, earlier runs", PLANNER_GOAL),
-    ("paper's DIPPER", everywhere("dipper_paper")),
+    (
+        "paper's DIPPER",
+        everywhere(
+            "dipper_paper",
+            {task: Learning("dipper_paper-demo1", mark=ONE_DEMONSTRATION) for task in (PNP, PUSH, KITCHEN)},
+        ),
+    ),
 ]
 HIERARCHICAL_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("DIPPER-No-V", everywhere("dipper_nov")),
@@ -130,9 +154,9 @@ HIERARCHICAL_COLUMNS: list[tuple[str, dict[str, Source]]] = [
         everywhere(
             "hier",
             {
-                PNP: "hier-dart20-noqf-bc1-demo0.5",
-                PUSH: "hier-dart200-noqf-bc1-demo0.5",
-                KITCHEN: "hier-dart20-noqf-bc1-demonorm-demo0.5",
+                PNP: Learning("hier-dart20-noqf-bc1-demo0.5"),
+                PUSH: Learning("hier-dart200-noqf-bc1-demo0.5"),
+                KITCHEN: Learning("hier-dart20-noqf-bc1-demonorm-demo0.5"),
             },
         ),
     ),
@@ -200,14 +224,16 @@ class Cell:
     success: list[float]  # one per seed
     partial: int  # seeds that had not finished their budget
 
+    mark: str = ""  # after the seeds: learnt from other demonstrations than the task's
+
     def text(self) -> str:
         if not self.success:
             return ""
         values = np.array(self.success)
-        mark = "*" if self.partial else ""
+        partial = "*" if self.partial else ""
         if len(values) == 1:
-            return f"{values[0]:.2f} (1{mark})"
-        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{mark})"
+            return f"{values[0]:.2f} (1{partial}){self.mark}"
+        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{partial}){self.mark}"
 
 
 def learning_rows(name: str) -> dict[tuple[str, str], dict[int, list[dict[str, str]]]]:
@@ -223,7 +249,7 @@ def learning_cell(task: str, source: Learning) -> tuple[Cell, list[plot.Curve]]:
     """The final evaluation within the budget of each seed, and each seed's curve."""
     seeds = learning_rows(source.csv).get((task, source.label), {})
     budget = TASKS[task][0]
-    cell, curves = Cell([], 0), []
+    cell, curves = Cell([], 0, source.mark), []
     for rows in seeds.values():
         within = [row for row in rows if int(row["timesteps"]) <= budget]
         if not within:
@@ -264,7 +290,7 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
     panels: dict[str, dict[str, list[plot.Curve]]] = {task: {} for task in TASKS}
     tables = []
     for columns, extra in ((DIPPER_COLUMNS, None), (HIERARCHICAL_COLUMNS, None), (FLAT_COLUMNS, "anchor (PIPER's code)")):
-        header = ["task (budget)", *(heading for heading, _ in columns), *([extra] if extra else [])]
+        header = ["task (budget, demonstrations)", *(heading for heading, _ in columns), *([extra] if extra else [])]
         lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for task, (budget, _) in TASKS.items():
             cells = []
@@ -278,9 +304,13 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
                     where = source.label if isinstance(source, Learning) else f"{source.csv}:{source.case}"  # type: ignore[union-attr]
                     csv_rows.append([task, heading, where, str(len(value.success)), value.text()])
             anchor = [ANCHORS.get(task, "")] if extra else []
-            lines.append(f"| `{task}` ({budget // 1000}k) | " + " | ".join(cells + anchor) + " |")
+            lines.append(f"| `{task}` ({budget // 1000}k, {DEMONSTRATIONS[task]}) | " + " | ".join(cells + anchor) + " |")
         tables.append("\n".join(lines))
-    return "\n\n".join(tables), csv_rows, panels
+    legend = (
+        f"{ONE_DEMONSTRATION}: learnt from the task's one scripted demonstration, not its DART episodes. Methods without "
+        "demonstrations: RAPS, DPO-FLAT, SAC+HER."
+    )
+    return "\n\n".join([*tables, legend]), csv_rows, panels
 
 
 def whose_success() -> str:

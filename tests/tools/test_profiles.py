@@ -78,15 +78,10 @@ def test_a_fetch_manipulation_model_makes_seven_decisions_per_episode():
 # Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", sections 25, 26 and
 # 29), the CPU profile names them; the paper-scale file keeps the paper's one demonstration.
 KITCHEN = "FrankaKitchenMicrowaveBurner-v0"
-MEASURED_DEMONSTRATIONS = {
-    ("dipper", KITCHEN): "auto:dart20",
-    ("dipper", "FetchPickAndPlace-v4"): "auto:dart20",
-    ("dipper", "FetchPush-v4"): "auto:dart200",
-    # SAC+HER with cloning clones what DIPPER clones.
-    ("sac_demo", KITCHEN): "auto:dart20",
-    ("sac_demo", "FetchPickAndPlace-v4"): "auto:dart20",
-    ("sac_demo", "FetchPush-v4"): "auto:dart200",
-}
+DART_EPISODES = {KITCHEN: "auto:dart20", "FetchPickAndPlace-v4": "auto:dart20", "FetchPush-v4": "auto:dart200"}
+# Every method that takes demonstrations learns from DIPPER's there, so that no row's advantage is its demonstrations'.
+CLONING_ALGOS = ["dipper", "dipper_paper", "dipper_nov", "hier", "hac", "piper", "saga", "sac_demo"]
+MEASURED_DEMONSTRATIONS = {(algo, env_id): path for algo in [*CLONING_ALGOS, "dac"] for env_id, path in DART_EPISODES.items()}
 
 
 def dart_profile(env_id: str, episodes: int, monkeypatch, cache: Path):
@@ -212,6 +207,21 @@ def test_sac_demo_entries_are_sac_with_dippers_demonstrations_and_cloning():
                 directory,
                 env_id,
             )
+
+
+@pytest.mark.parametrize("env_id", DART_EPISODES)
+@pytest.mark.parametrize("algo", CLONING_ALGOS)
+def test_every_method_clones_dippers_demonstrations_as_dipper_where_its_profile_takes_dart_episodes(algo, env_id):
+    assert cloning_settings(algo, env_id, hyperparams_dir()) == cloning_settings("dipper", env_id, hyperparams_dir())
+    if algo != "sac_demo":  # SACDemo has no scaling by the demonstrations' states (hyperparams/sac_demo.yml)
+        normalized = load_entry(algo, env_id)["demo_kwargs"].get("normalize_from_demos", False)
+        assert normalized == load_entry("dipper", env_id)["demo_kwargs"].get("normalize_from_demos", False)
+
+
+@pytest.mark.parametrize("env_id", DART_EPISODES)
+def test_dac_discriminates_against_dippers_demonstrations_where_its_profile_takes_dart_episodes(env_id):
+    entry, dipper = load_entry("dac", env_id), cloning_settings("dipper", env_id, hyperparams_dir())
+    assert (entry["demo_path"], entry["n_demos"]) == (dipper["demo_path"], dipper["n_demos"])
 
 
 # Tasks where a run showed the switches beyond the paper help (BENCHMARKS.md, "the paper's tasks on a CPU"), and which.

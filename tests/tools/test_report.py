@@ -67,7 +67,7 @@ def test_the_matrix_is_written_between_the_markers_and_refused_without_them(resu
 
 def test_every_column_names_one_configuration_per_task():
     tables, rows, _ = report.matrix()
-    assert tables.count("| task (budget) |") == 3
+    assert tables.count("| task (budget, demonstrations) |") == 3
     # Every CSV row names the one source of its cell.
     assert rows[0] == ["task", "column", "source", "seeds", "success"] and all(len(row) == 5 for row in rows)
     for heading, sources in [*report.DIPPER_COLUMNS, *report.HIERARCHICAL_COLUMNS, *report.FLAT_COLUMNS]:
