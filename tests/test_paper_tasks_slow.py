@@ -11,32 +11,36 @@ the lower level learns the push), not the paper's final success rate. The tests'
 ended at 0.10 from 0.00 at 10k on both tasks (pick-and-place 20 minutes, push 21).
 
 On the Fetch mazes and the kitchen the CPU profiles normalise observations because, unnormalised, the lower actor's ReLU
-units died (BENCHMARKS.md section 13). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the demonstration
-shows: driven by the demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and 1 (none
-untrained; none at any point to 20k on seeds 1 and 2 unnormalised); the test's own run reached all 15 in 4 minutes, and
-still passes at the authors' update rate (0.044 per step, the profile since section 15: both maze checks in 5 minutes on
-a shared core). On the random maze no learning signal has been measured at a CPU budget yet; what is checked there is
-the fix itself: the lower actor keeps its units alive (unnormalised, 97 % of one layer was dead at 5k and 10k; the
-test's own run, normalised, 54 % at 10k). Since section 28 the mazes' profile has [64, 64] lower networks; the tests'
-own runs there: all but two of the 15 subgoals (0.87) at 15k, and 3 % of the lower actor dead at 10k (one minute for
-both). The random push's networks stay alive without normalisation.
+units died (research log docs/research/2026-11-30-paper-tasks-cpu.md, 2026-12-01: "Dead lower networks on the mazes and
+the kitchen"). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the demonstration shows: driven by the
+demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and 1 (none untrained; none at any point
+to 20k on seeds 1 and 2 unnormalised); the test's own run reached all 15 in 4 minutes, and still passes at the authors'
+update rate (0.044 per step, the profile since the log's 2026-12-01 entry "The authors' update rate on the maze and the
+kitchen": both maze checks in 5 minutes on a shared core). On the random maze no learning signal has been measured at a
+CPU budget yet; what is checked there is the fix itself: the lower actor keeps its units alive (unnormalised, 97 % of
+one layer was dead at 5k and 10k; the test's own run, normalised, 54 % at 10k). Since the log's 2026-12-04 entry
+"Smaller lower networks at today's profiles" the mazes' profile has [64, 64] lower networks; the tests' own runs there:
+all but two of the 15 subgoals (0.87) at 15k, and 3 % of the lower actor dead at 10k (one minute for both). The random
+push's networks stay alive without normalisation.
 
-The random pick-and-place learns fast at its profile (twenty DART episodes with the fixed tasks' switches, section 26):
-the deterministic evaluation succeeded in 0.55, 0.65 and 0.50 of 20 episodes at 15k on seeds 0, 1 and 2, and in 0.60,
-0.65 and 0.60 when run again on another installation (the clone of the one demonstration: 0.05), so its check is that
-evaluation at 15k against the untrained model. The test's own runs: 0.10 untrained and 0.80 at 15k (96 s), and on the
-other installation 0.10 and 0.60 (94 s); the untrained bound leaves room for one more episode that needs no skill.
-The random push learns at its profile from 200 DART episodes (section 29; twenty did not teach it): the evaluation
-succeeded in 0.20 and 0.25 at 15k and 0.45 and 0.35 at 30k on seeds 0 and 1, so its check is 30k against the untrained
-model with a lower bound; the test's own run: 0.00 untrained and 0.40 at 30k (13 minutes on a core shared with two
-training runs).
+The random pick-and-place learns fast at its profile (twenty DART episodes with the fixed tasks' switches; the log,
+2026-12-04: "Twenty DART episodes on the random pick-and-place and push"): the deterministic evaluation succeeded in
+0.55, 0.65 and 0.50 of 20 episodes at 15k on seeds 0, 1 and 2, and in 0.60, 0.65 and 0.60 when run again on another
+installation (the clone of the one demonstration: 0.05), so its check is that evaluation at 15k against the untrained
+model. The test's own runs: 0.10 untrained and 0.80 at 15k (96 s), and on the other installation 0.10 and 0.60 (94 s);
+the untrained bound leaves room for one more episode that needs no skill. The random push learns at its profile from 200
+DART episodes (the log, 2026-12-04: "The random push learnt from 200 DART episodes"; twenty did not teach it): the
+evaluation succeeded in 0.20 and 0.25 at 15k and 0.45 and 0.35 at 30k on seeds 0 and 1, so its check is 30k against the
+untrained model with a lower bound; the test's own run: 0.00 untrained and 0.40 at 30k (13 minutes on a core shared with
+two training runs).
 
-On the kitchen the profile's lower level clones twenty DART episodes (section 25) and its success comes late (first
-0.45 at 150k-330k), but the clone opens the microwave, the first half of the task, early and fickly: evaluated every
-15k, the deterministic policy opened the door to 0.67-0.72 (the goal's 0.75) by 60k on seeds 0, 1 and 2 (first at
-60k, 30k and 30k; untrained: 0.00) and lost it again in between (seed 2: 0.71 at 30k, 0.00 at 45k and 60k; section
-26). So its check is the largest opening over the evaluations every 15k to 60k; the test's own run (seed 0, three
-episodes per evaluation, 8 minutes on a shared core) opened it to 0.63, 0.00 and 0.62 at 30k, 45k and 60k.
+On the kitchen the profile's lower level clones twenty DART episodes (the log, 2026-12-03: "The kitchen's lower level is
+a noisy clone") and its success comes late (first 0.45 at 150k-330k), but the clone opens the microwave, the first half
+of the task, early and fickly: evaluated every 15k, the deterministic policy opened the door to 0.67-0.72 (the goal's
+0.75) by 60k on seeds 0, 1 and 2 (first at 60k, 30k and 30k; untrained: 0.00) and lost it again in between (seed 2: 0.71
+at 30k, 0.00 at 45k and 60k; the log, 2026-12-04: "Twenty DART episodes on the random pick-and-place and push"). So its
+check is the largest opening over the evaluations every 15k to 60k; the test's own run (seed 0, three episodes per
+evaluation, 8 minutes on a shared core) opened it to 0.63, 0.00 and 0.62 at 30k, 45k and 60k.
 """
 
 from typing import Any

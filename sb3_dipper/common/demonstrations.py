@@ -245,7 +245,7 @@ def _run_episode(
 # task (sb3_dipper.envs registers one maker per scripted expert), so this floor names no task.
 _DEFAULT_DEMONSTRATIONS: dict[str, Callable[[int, float], Demonstrations]] = {}
 # "auto:dart<N>": N episodes of the expert executed with this action noise, the setting measured on the kitchen
-# (BENCHMARKS.md, "the paper's tasks on a CPU", section 25).
+# (research log docs/research/2026-11-30-paper-tasks-cpu.md, 2026-12-03: "The kitchen's lower level is a noisy clone").
 DART_ACTION_NOISE = 0.1
 _DART_SPEC = re.compile(r"auto:dart([1-9][0-9]*)")
 
@@ -309,8 +309,8 @@ def normalize_like_demonstrations(
 
     Running statistics of the visited states scale an object's joint by the std the exploring agent gives it: on the
     kitchen, where exploration hardly moves the microwave door or the burner knob, a demonstration's states are then
-    clipped and the lower level cannot see the task's progress (measured in BENCHMARKS.md, "the paper's tasks on a
-    CPU", section 23).
+    clipped and the lower level cannot see the task's progress (measured in the research log
+    docs/research/2026-11-30-paper-tasks-cpu.md, 2026-12-03: "The kitchen scaled like its demonstrations").
 
     :param vec_normalize: the training env's ``VecNormalize`` (with ``norm_obs=True``)
     :param demonstrations: the episodes whose states define the scale

@@ -75,8 +75,10 @@ def test_a_fetch_manipulation_model_makes_seven_decisions_per_episode():
     env.close()
 
 
-# Where a run showed that more demonstrations help (BENCHMARKS.md, "the paper's tasks on a CPU", sections 25, 26 and
-# 29), the CPU profile names them; the paper-scale file keeps the paper's one demonstration.
+# Where a run showed that more demonstrations help (research log docs/research/2026-11-30-paper-tasks-cpu.md, entries
+# 2026-12-03 "The kitchen's lower level is a noisy clone", 2026-12-04 "Twenty DART episodes on the random pick-and-place
+# and push" and 2026-12-04 "The random push learnt from 200 DART episodes"), the CPU profile names them; the paper-scale
+# file keeps the paper's one demonstration.
 KITCHEN = "FrankaKitchenMicrowaveBurner-v0"
 DART_EPISODES = {KITCHEN: "auto:dart20", "FetchPickAndPlace-v4": "auto:dart20", "FetchPush-v4": "auto:dart200"}
 # Every method that takes demonstrations learns from DIPPER's there, so that no row's advantage is its demonstrations'.

@@ -27,8 +27,8 @@ its demonstrations. ``--first-episode-seed 20000`` runs episodes no demonstratio
         --n-demos 1 5 20
 
 The departure step is then measured from the file's first episode. A clone's success can hang on its initialisation
-and batch order (the kitchen's, BENCHMARKS.md section 22): ``--fit-seeds 0 1 2`` fits one clone per
-seed.
+and batch order (the kitchen's; research log docs/research/2026-11-30-paper-tasks-cpu.md, 2026-12-03: "The kitchen's
+demonstration made DART"): ``--fit-seeds 0 1 2`` fits one clone per seed.
 
 ``--option-steps K`` clones as a lower level learns from the demonstrations: each step under a subgoal the algorithms'
 own :class:`~sb3_dipper.common.imitation.DemonstrationBuffer` samples (a later achieved subgoal of its episode, or the
@@ -43,7 +43,8 @@ clone follows the subgoals and a trained lower level does not, the cloning term 
 level that proposes nothing useful (``planner_share.py``'s ``goal_as_subgoal``): the gap to the demonstration's
 subgoals is what a higher level's subgoals could add. ``--batch-size`` sets the demonstration steps per Adam step (128);
 a lower level's cloning term sees ``demo_share x batch_size`` of them (32 at the CPU profiles), and on the kitchen a
-clone fitted on batches of 32 succeeds far less reliably (BENCHMARKS.md, section 25).
+clone fitted on batches of 32 succeeds far less reliably (the same log, 2026-12-03: "The kitchen's lower level is a
+noisy clone").
 """
 
 from __future__ import annotations
