@@ -15,8 +15,8 @@ units died (research log docs/research/2026-11-30-paper-tasks-cpu.md, 2026-12-01
 the kitchen"). On `FetchFourRoomMazeFixed-v0` the lower level then learns what the demonstration shows: driven by the
 demonstration's subgoals from its start, it reached all 15 from 15k on seeds 0 and 1 (none untrained; none at any point
 to 20k on seeds 1 and 2 unnormalised); the test's own run reached all 15 in 4 minutes, and still passes at the authors'
-update rate (0.044 per step, the profile since the log's 2026-12-01 entry "The authors' update rate on the maze and the
-kitchen": both maze checks in 5 minutes on a shared core). On the random maze no learning signal has been measured at a
+update rate (0.044 per step, the profile since the log's 2026-12-01 entry "The authors' rate as the maze and kitchen
+profile": both maze checks in 5 minutes on a shared core). On the random maze no learning signal has been measured at a
 CPU budget yet; what is checked there is the fix itself: the lower actor keeps its units alive (unnormalised, 97 % of
 one layer was dead at 5k and 10k; the test's own run, normalised, 54 % at 10k). Since the log's 2026-12-04 entry
 "Smaller lower networks at today's profiles" the mazes' profile has [64, 64] lower networks; the tests' own runs there:
