@@ -45,8 +45,10 @@ The report reads the runs on disk through ``plot.py``'s loaders (finished or not
 anything): a table per task (seeds, with the unfinished ones counted as partial, the last evaluation every seed has
 reached, the success there as mean +- std over seeds, the steps where the mean success first reaches 50 %, and for
 hierarchical algorithms the subgoal distance and lower value last logged at or before that step, for the
-preference-trained ones the labelled pairs in their dataset then: what a person would have labelled), the CSV
-``OUT/<name>.csv`` with one row per seed and evaluation, and a figure with a panel per task (``plot.draw_success``).
+preference-trained ones the labelled pairs in their dataset then: what a person would have labelled, and the finished
+runs' primitive steps per second of wall time, evaluations included), the CSV ``OUT/<name>.csv`` with one row per seed
+and evaluation (``steps_per_second`` in every row of a finished run), and a figure with a panel per task
+(``plot.draw_success``).
 The tables are printed and the figure written to ``OUT/<name>.png``; only ``--write`` puts the section ``<name>`` into
 BENCHMARKS.md (``--benchmarks-md``) and the figure and the CSV into docs/benchmarks/ (``--figures-dir``). Run folders
 do not outlive the machine they ran on; the CSV does: with ``--previous-csv docs/benchmarks/<name>.csv`` a later report

@@ -38,7 +38,7 @@ import io
 import re
 import sys
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -225,6 +225,7 @@ class Cell:
     partial: int  # seeds that had not finished their budget
 
     mark: str = ""  # after the seeds: learnt from other demonstrations than the task's
+    speeds: list[float] = field(default_factory=list)  # steps/s of wall time of the finished runs that recorded it
 
     def text(self) -> str:
         if not self.success:
@@ -256,6 +257,8 @@ def learning_cell(task: str, source: Learning) -> tuple[Cell, list[plot.Curve]]:
             continue
         cell.success.append(float(within[-1]["success"]))
         cell.partial += within[-1]["finished"] != "1"
+        if rows[-1].get("steps_per_second"):
+            cell.speeds.append(float(rows[-1]["steps_per_second"]))
         curves.append((np.array([float(r["timesteps"]) for r in within]), np.array([float(r["success"]) for r in within])))
     return cell, curves
 
@@ -286,7 +289,7 @@ def cell(task: str, source: Source | None) -> tuple[Cell, list[plot.Curve]]:
 def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]]]]:
     """The three markdown tables (DIPPER and its controls, hierarchical baselines, flat baselines), the CSV rows and the
     figure's panels."""
-    csv_rows = [["task", "column", "source", "seeds", "success"]]
+    csv_rows = [["task", "column", "source", "seeds", "success", "steps_per_second", "speed_runs"]]
     panels: dict[str, dict[str, list[plot.Curve]]] = {task: {} for task in TASKS}
     tables = []
     for columns, extra in ((DIPPER_COLUMNS, None), (HIERARCHICAL_COLUMNS, None), (FLAT_COLUMNS, "anchor (PIPER's code)")):
@@ -302,7 +305,9 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
                     panels[task][heading] = curves
                 if value.success:
                     where = source.label if isinstance(source, Learning) else f"{source.csv}:{source.case}"  # type: ignore[union-attr]
-                    csv_rows.append([task, heading, where, str(len(value.success)), value.text()])
+                    speed = f"{np.mean(value.speeds):.0f}" if value.speeds else ""
+                    seeds = str(len(value.success))
+                    csv_rows.append([task, heading, where, seeds, value.text(), speed, str(len(value.speeds))])
             anchor = [ANCHORS.get(task, "")] if extra else []
             lines.append(f"| `{task}` ({budget // 1000}k, {DEMONSTRATIONS[task]}) | " + " | ".join(cells + anchor) + " |")
         tables.append("\n".join(lines))
@@ -311,6 +316,18 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
         "demonstrations: RAPS, DPO-FLAT, SAC+HER."
     )
     return "\n\n".join([*tables, legend]), csv_rows, panels
+
+
+def cell_speeds(csv_rows: list[list[str]]) -> str:
+    """The training speed of every cell that recorded it (the matrix CSV's rows): the table between
+    ``<!-- cell-speed -->`` markers."""
+    header = ["task", "column", "runs", "seeds recorded", "primitive steps/s (mean of runs)"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    by_task = sorted(csv_rows[1:], key=lambda row: list(TASKS).index(row[0]))
+    for task, column, source, seeds, _, speed, recorded in by_task:
+        if speed:
+            lines.append(f"| `{task}` | {column} | `{source}` | {recorded} of {seeds} | {speed} |")
+    return "\n".join(lines)
 
 
 def whose_success() -> str:
@@ -355,12 +372,14 @@ def main() -> None:
     args = parser.parse_args()
     tables, csv_rows, panels = matrix()
     whose = whose_success()
+    speeds = cell_speeds(csv_rows)
     ablation_table, ablation_panels = ablations()
-    print(tables, whose, ablation_table, sep="\n\n")
+    print(tables, whose, speeds, ablation_table, sep="\n\n")
     if args.write:
         for document in (REPO / "BENCHMARKS.md", REPO / "README.md"):
             write_between_markers(document, tables)
         write_between_markers(REPO / "BENCHMARKS.md", whose, "whose-success")
+        write_between_markers(REPO / "BENCHMARKS.md", speeds, "cell-speed")
         write_between_markers(REPO / "BENCHMARKS.md", ablation_table, "ablations")
         lines = io.StringIO()
         csv.writer(lines, lineterminator="\n").writerows(csv_rows)

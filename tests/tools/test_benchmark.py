@@ -31,7 +31,9 @@ TINY = [
 ]  # fmt: skip
 
 
-CSV_HEADER = "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs,finished"
+CSV_HEADER = (
+    "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs,finished,steps_per_second"
+)
 
 
 def learning_command(out: Path, *args: str) -> list[str]:
@@ -141,17 +143,22 @@ def write_run(
     hierarchical: bool,
     finished: bool = True,
     training_successes: list[float] | None = None,
+    seconds: float | None = None,
 ) -> None:
     """A zoo run folder of ``<algo>[-<variant>]`` as a benchmark leaves it: evaluations every 1,000 steps, progress.csv
-    for a hierarchical algorithm, result.json once finished, and a monitor file of 500-step training episodes."""
+    for a hierarchical algorithm, result.json once finished (with ``seconds``: its wall time, and the final model's
+    zip, trained to the last evaluation), and a monitor file of 500-step training episodes."""
     algo, _, variant = name.partition("-")
     run = out / (variant or "default") / f"seed_{seed}" / algo / f"{env_id}_1"
     run.mkdir(parents=True)
     if training_successes is not None:
         write_monitor(run, [500] * len(training_successes), training_successes)
-    if finished:
-        (run / "result.json").write_text("{}")
     steps = 1000 * np.arange(1, len(successes) + 1)
+    if finished:
+        (run / "result.json").write_text(json.dumps({} if seconds is None else {"seconds": seconds}))
+    if finished and seconds is not None:
+        with zipfile.ZipFile(run / f"{env_id}.zip", "w") as model:
+            model.writestr("data", json.dumps({"num_timesteps": int(steps[-1]), "_total_timesteps": int(steps[-1])}))
     success = np.repeat(np.array(successes)[:, None], 4, axis=1)
     np.savez(
         run / "evaluations.npz", timesteps=steps, results=success - 1, ep_lengths=np.full_like(success, 50), successes=success
@@ -176,7 +183,8 @@ def test_report_per_task(tmp_path, monkeypatch):
     for env_id in envs:
         for seed in (0, 1):
             training = [0, 0, 0, 1, 1, 1]
-            write_run(tmp_path, "dipper", env_id, seed, [0.0, 0.5, 1.0], hierarchical=True, training_successes=training)
+            seconds = 30.0 * (seed + 1)  # 3,000 steps: 100 and 50 steps/s
+            write_run(tmp_path, "dipper", env_id, seed, [0.0, 0.5, 1.0], True, training_successes=training, seconds=seconds)
             write_run(tmp_path, "sac", env_id, seed, [0.0, 0.25, 0.5], hierarchical=False)
     write_run(tmp_path, "dipper-no-plan", ENV_ID, 0, [0.0, 0.25, 0.25], hierarchical=True)
     # A seed still running: the table and the mean curve stop at the evaluations every seed has; the CSV has all of
@@ -201,17 +209,19 @@ def test_report_per_task(tmp_path, monkeypatch):
     assert list(rows) == ["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"]
     assert rows["DIPPER"].startswith("| DIPPER | 2 | 3,000 |")
     # Training success: the last 100 training episodes finished by the last evaluation (3 of 6 succeeded).
-    assert rows["DIPPER"].endswith("| 1.00 +- 0.00 | 0.50 | 2,000 | 1.00 | -3.00 | 30 |")
-    assert rows["DIPPER (no-plan)"].endswith("| 1 | 3,000 | 0.25 +- 0.00 | - | not reached | 1.00 | -3.00 | 30 |")
-    assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | - | 3,000 | - | - | - |")
+    # Steps per second of wall time: the finished runs that recorded it (the others: a dash).
+    assert rows["DIPPER"].endswith("| 1.00 +- 0.00 | 0.50 | 2,000 | 1.00 | -3.00 | 30 | 75 |")
+    assert rows["DIPPER (no-plan)"].endswith("| 1 | 3,000 | 0.25 +- 0.00 | - | not reached | 1.00 | -3.00 | 30 | - |")
+    assert rows["SAC+HER"].endswith("| 0.50 +- 0.00 | - | 3,000 | - | - | - | - |")
     assert rows["HIER"].startswith("| HIER | 2 (1 partial) | 2,000 | 0.25 +- 0.25 | - | not reached | 1.25 |")
     assert len(tables["FetchPush-v4"].splitlines()) == 2 + 2
     csv = (tmp_path / "report.csv").read_text().splitlines()
     assert csv[0] == CSV_HEADER
     assert {line.split(",")[0] for line in csv[1:]} == set(envs)
-    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000,,,0" in csv
-    assert f"{ENV_ID},hier,0,3000,0.2500,1.0000,-3.0000,,,1" in csv
-    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000,30.0000,1" in csv
+    assert f"{ENV_ID},hier,1,2000,0.5000,1.0000,-3.0000,,,0," in csv
+    assert f"{ENV_ID},hier,0,3000,0.2500,1.0000,-3.0000,,,1," in csv
+    assert f"{ENV_ID},dipper,0,3000,1.0000,1.0000,-3.0000,0.5000,30.0000,1,100.0" in csv
+    assert f"{ENV_ID},dipper,1,3000,1.0000,1.0000,-3.0000,0.5000,30.0000,1,50.0" in csv
     assert figure == tmp_path / "figures" / "report.png" and figure.exists()
     lines = [[line.get_label() for line in ax.get_lines() if line.get_linestyle() == "-"] for ax in drawn[0].axes]
     assert lines == [["DIPPER", "DIPPER (no-plan)", "HIER", "SAC+HER"], ["DIPPER", "SAC+HER"]]
@@ -234,7 +244,7 @@ def test_a_later_report_takes_the_runs_whose_folders_are_gone_from_the_earlier_c
     folders (tables, partial runs, CSV); a seed with a folder on disk is read from the folder, the others from the CSV."""
     first, later = tmp_path / "first", tmp_path / "later"
     for seed in (0, 1):
-        write_run(first, "dipper", ENV_ID, seed, [0.0, 0.5, 1.0], hierarchical=True, training_successes=[0, 1])
+        write_run(first, "dipper", ENV_ID, seed, [0.0, 0.5, 1.0], True, training_successes=[0, 1], seconds=20.0 + seed)
         write_run(first, "sac", ENV_ID, seed, [0.0, 0.25, 0.5], hierarchical=False)
     write_run(first, "hier", ENV_ID, 0, [0.0, 0.0, 0.25], hierarchical=True)
     write_run(first, "hier", ENV_ID, 1, [0.0, 0.5], hierarchical=True, finished=False)
@@ -257,7 +267,7 @@ def test_a_later_report_takes_the_runs_whose_folders_are_gone_from_the_earlier_c
 
 def test_a_csv_without_the_report_s_columns_is_refused(tmp_path):
     old = tmp_path / "old.csv"
-    old.write_text(f"{CSV_HEADER.removesuffix(',finished')}\n{ENV_ID},dipper,0,1000,0.0,,,,\n")
+    old.write_text(f"{CSV_HEADER.removesuffix(',finished,steps_per_second')}\n{ENV_ID},dipper,0,1000,0.0,,,,\n")
     with pytest.raises(ValueError, match=r"old\.csv lacks the columns \['finished'\]"):
         benchmark.read_report_csv(old)
 

@@ -46,6 +46,31 @@ def test_an_evaluated_cell_takes_each_runs_final_model_of_its_case(results):
     assert report.evaluated_cell(report.Evaluated("missing.csv", "x", "policy_alone")).text() == ""
 
 
+def test_a_cells_speed_is_the_mean_over_the_finished_runs_that_recorded_it(results):
+    (results / "timed.csv").write_text(
+        "env,algo,seed,timesteps,success,subgoal_distance,low_value,train_success,preference_pairs,finished,"
+        "steps_per_second,commit\n"
+        "FetchPickAndPlaceFixed-v0,hac,0,150000,1.0000,,,0.1,,1,150.0,abc\n"
+        "FetchPickAndPlaceFixed-v0,hac,1,150000,0.0000,,,0.1,,1,100.0,abc\n"
+        "FetchPickAndPlaceFixed-v0,hac,2,150000,0.0000,,,0.1,,1,,abc\n"
+    )
+    timed, _ = report.learning_cell("FetchPickAndPlaceFixed-v0", report.Learning("hac", "timed.csv"))
+    assert timed.speeds == [150.0, 100.0]
+    untimed, _ = report.learning_cell("FetchPickAndPlaceFixed-v0", report.Learning("sac"))
+    assert untimed.speeds == []
+    rows = [
+        ["task", "column", "source", "seeds", "success", "steps_per_second", "speed_runs"],
+        ["FetchPushFixed-v0", "SAC+HER", "sac", "1", "0.00 (1)", "", "0"],
+        ["FetchPushFixed-v0", "HAC", "hac", "3", "0.33 +- 0.47 (3)", "125", "2"],
+        ["FetchPickAndPlaceFixed-v0", "HAC", "hac", "3", "0.33 +- 0.47 (3)", "140", "3"],
+    ]
+    table = report.cell_speeds(rows).splitlines()
+    assert table[2:] == [
+        "| `FetchPickAndPlaceFixed-v0` | HAC | `hac` | 3 of 3 | 140 |",
+        "| `FetchPushFixed-v0` | HAC | `hac` | 2 of 3 | 125 |",
+    ]
+
+
 def test_whose_success_has_a_row_per_method_and_task_from_its_final_models(results, monkeypatch):
     monkeypatch.setattr(report, "BASELINE_FINAL_MODELS", [("FetchPickAndPlaceFixed-v0", "HAC", "share.csv", "/dipper/")])
     table = report.whose_success().splitlines()
@@ -69,7 +94,7 @@ def test_every_column_names_one_configuration_per_task():
     tables, rows, _ = report.matrix()
     assert tables.count("| task (budget, demonstrations) |") == 3
     # Every CSV row names the one source of its cell.
-    assert rows[0] == ["task", "column", "source", "seeds", "success"] and all(len(row) == 5 for row in rows)
+    assert rows[0][:5] == ["task", "column", "source", "seeds", "success"] and all(len(row) == 7 for row in rows)
     for heading, sources in [*report.DIPPER_COLUMNS, *report.HIERARCHICAL_COLUMNS, *report.FLAT_COLUMNS]:
         assert set(sources) <= set(report.TASKS), heading
 

@@ -23,7 +23,7 @@ from plot import label
 
 from sb3_dipper.common.files import write_bytes_atomically
 
-from .run import finished, seed_folder
+from .run import finished, run_steps_per_second, seed_folder
 
 REPO = Path(__file__).resolve().parents[2]
 BENCHMARKS_MD = REPO / "BENCHMARKS.md"
@@ -37,8 +37,11 @@ PREFERENCE_PAIRS_KEY = "train/high_preference_pairs"
 # The training episodes' success over the last 100 episodes, from the monitor files: the authors' "train success rate".
 TRAINING_SUCCESS = "train_success"
 CSV_METRICS = (*OPTION_METRICS, TRAINING_SUCCESS, PREFERENCE_PAIRS)
-# The report's CSV: a row per run and evaluation; ``finished`` is 1 once the run had trained its whole budget.
-CSV_COLUMNS = ("env", "algo", "seed", "timesteps", "success", *CSV_METRICS, "finished")
+# The report's CSV: a row per run and evaluation; ``finished`` is 1 once the run had trained its whole budget, and
+# ``steps_per_second`` is then the whole run's primitive steps per second of wall time (evaluations included), the same
+# in each of its rows; CSVs written before it was recorded lack the column.
+SPEED = "steps_per_second"
+CSV_COLUMNS = ("env", "algo", "seed", "timesteps", "success", *CSV_METRICS, "finished", SPEED)
 
 
 def machine() -> str:
@@ -73,6 +76,7 @@ class SeedCurve:
     steps: np.ndarray  # (evaluations,) primitive steps
     success: np.ndarray  # (evaluations,) success rates
     metrics: dict[str, np.ndarray]  # every CSV_METRICS key, (evaluations,), NaN where not logged
+    steps_per_second: float | None = None  # the finished run's, wall time with evaluations; None if not recorded
 
 
 @dataclass
@@ -110,7 +114,8 @@ def run_seed_curve(run: Path, seed: int) -> SeedCurve | None:
     logged[PREFERENCE_PAIRS] = plot.metric_curve(log, PREFERENCE_PAIRS_KEY) if log is not None else None
     steps, success = curve
     metrics = {key: np.array([plot.value_at(logged[key], step) for step in steps]) for key in CSV_METRICS}
-    return SeedCurve(seed=seed, finished=finished(run), steps=steps, success=success, metrics=metrics)
+    speed = run_steps_per_second(run)
+    return SeedCurve(seed=seed, finished=finished(run), steps=steps, success=success, metrics=metrics, steps_per_second=speed)
 
 
 def read_report_csv(path: Path) -> dict[tuple[str, str, int], SeedCurve]:
@@ -121,7 +126,7 @@ def read_report_csv(path: Path) -> dict[tuple[str, str, int], SeedCurve]:
     """
     with open(path, newline="") as file:
         reader = csv.DictReader(file)
-        missing = [column for column in CSV_COLUMNS if column not in (reader.fieldnames or [])]
+        missing = [column for column in CSV_COLUMNS if column != SPEED and column not in (reader.fieldnames or [])]
         if missing:
             raise ValueError(
                 f"{path} lacks the columns {missing} of a report CSV ({','.join(CSV_COLUMNS)}): pass a CSV that "
@@ -137,6 +142,7 @@ def read_report_csv(path: Path) -> dict[tuple[str, str, int], SeedCurve]:
             steps=np.array([float(row["timesteps"]) for row in seed_rows]),
             success=np.array([float(row["success"]) for row in seed_rows]),
             metrics={key: np.array([float(row[key] or "nan") for row in seed_rows]) for key in CSV_METRICS},
+            steps_per_second=float(seed_rows[-1][SPEED]) if seed_rows[-1].get(SPEED) else None,
         )
         for (env_id, name, seed), seed_rows in rows.items()
     }
@@ -175,6 +181,16 @@ def final_mean(curves: Curves, key: str, number_format: str = ".2f") -> str:
     return mean + (f" ({measured} of {len(final)} seeds)" if measured < len(final) else "")
 
 
+def run_speed(curves: Curves) -> str:
+    """Mean primitive steps per second of wall time over the finished runs that recorded it, or a dash."""
+    speeds = [seed.steps_per_second for seed in curves.per_seed if seed.steps_per_second is not None]
+    if not speeds:
+        return "-"
+    return f"{np.mean(speeds):.0f}" + (
+        f" ({len(speeds)} of {len(curves.per_seed)} seeds)" if len(speeds) < len(curves.per_seed) else ""
+    )
+
+
 def task_table(
     out: Path, names: list[str], env_id: str, seeds: list[int], previous: Mapping[tuple[str, str, int], SeedCurve]
 ) -> tuple[str, dict[str, Curves], list[str]]:
@@ -192,8 +208,9 @@ def task_table(
                 metrics = [seed_curve.metrics[key][step_index] for key in CSV_METRICS]
                 values = ",".join("" if np.isnan(value) else f"{value:.4f}" for value in metrics)
                 success = seed_curve.success[step_index]
+                speed = "" if seed_curve.steps_per_second is None else f"{seed_curve.steps_per_second:.1f}"
                 csv_rows.append(
-                    f"{env_id},{name},{seed_curve.seed},{int(step)},{success:.4f},{values},{int(seed_curve.finished)}"
+                    f"{env_id},{name},{seed_curve.seed},{int(step)},{success:.4f},{values},{int(seed_curve.finished)},{speed}"
                 )
         final = run_curves.success[:, -1]
         reached = np.flatnonzero(run_curves.success.mean(axis=0) >= 0.5)
@@ -203,14 +220,16 @@ def task_table(
         rows.append(
             f"| {label(name)} | {runs} | {int(run_curves.steps[-1]):,} | {final.mean():.2f} +- {final.std():.2f} | "
             f"{final_mean(run_curves, TRAINING_SUCCESS)} | {to_half} | {final_mean(run_curves, 'subgoal_distance')} | "
-            f"{final_mean(run_curves, 'low_value')} | {final_mean(run_curves, PREFERENCE_PAIRS, ',.0f')} |"
+            f"{final_mean(run_curves, 'low_value')} | {final_mean(run_curves, PREFERENCE_PAIRS, ',.0f')} | "
+            f"{run_speed(run_curves)} |"
         )
     if not rows:
         return "No runs yet.", curves, csv_rows
     table = (
         "| algorithm | seeds | last evaluation (steps) | success there (mean +- std) | training success there (last 100 "
-        "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there | labelled pairs there |\n"
-        "|---|---|---|---|---|---|---|---|---|\n"
+        "episodes) | steps to 50 % (mean curve) | subgoal distance there | lower value there | labelled pairs there | "
+        "steps/s (finished runs, wall time) |\n"
+        "|---|---|---|---|---|---|---|---|---|---|\n"
     )
     return table + "\n".join(rows), curves, csv_rows
 

@@ -147,6 +147,16 @@ def model_steps(run: Path) -> tuple[int, int] | None:
     return saved_steps(model) if model.exists() else None
 
 
+def run_steps_per_second(run: Path) -> float | None:
+    """A finished run's primitive steps per second of wall time, evaluations and every part of a paused run included
+    (``result.json``'s seconds), or None before it finished."""
+    steps = model_steps(run)
+    if not finished(run) or steps is None:
+        return None
+    seconds = float(json.loads((run / RESULT).read_text())["seconds"])
+    return steps[0] / seconds if seconds > 0 else None
+
+
 def trained_to_the_end(run: Path) -> bool:
     """Whether the run's final model trained its whole budget: rl-zoo3 also saves the model of a run stopped by Ctrl-C
     or paused by ``--pause-after-minutes``."""
