@@ -223,7 +223,6 @@ ABLATIONS: list[tuple[str, list[tuple[str, Learning]]]] = [
 class Cell:
     success: list[float]  # one per seed
     partial: int  # seeds that had not finished their budget
-
     mark: str = ""  # after the seeds: learnt from other demonstrations than the task's
     speeds: list[float] = field(default_factory=list)  # steps/s of wall time of the finished runs that recorded it
 
