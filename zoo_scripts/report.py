@@ -182,6 +182,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP, "HAC", "planner-share-pnp-random-baselines.csv", "/hac/"),
     (PNP, "PIPER", "planner-share-pnp-random-baselines.csv", "/piper/"),
     (PNP, "DIPPER-No-V", "planner-share-pnp-random-baselines.csv", "/dipper_nov/"),
+    (PNP, "SAGA", "planner-share-pnp-random-baselines.csv", "/saga/"),
     (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
 ]
