@@ -102,6 +102,9 @@ BAD_SWITCH_SETTINGS = [
     ("value_score_coef", INF, NON_NEGATIVE),
     ("goal_subgoal_prob", 1.5, PROBABILITY),
     ("goal_episode_prob", -0.1, PROBABILITY),
+    ("hindsight_actions", "False", "must be True or False, got 'False'"),
+    ("truncate_at_goal", 1, "must be True or False, got 1"),
+    ("contrast_env_goals", "no", "must be True or False, got 'no'"),
     ("reference", "previous", r"'previous': choose one of \('uniform', 'averaged'\)"),
     ("value_reg", "papper", r"'papper': choose one of \('paper', 'score', 'reparam'\)"),
 ]
@@ -347,9 +350,11 @@ def test_a_switch_is_checked_in_a_file_given_to_load_and_set_on_a_built_model(sa
     model.switch_kwargs["label_smoothing"] = 0.5
     with pytest.raises(ValueError, match=r"switch_kwargs\['label_smoothing'\] must be"):
         model.learn(10)
-    model.switch_kwargs.update(label_smoothing=0.0, truncate_at_goal=True)
+    assert model.preference_pipeline.sampler.contrast_env_goals
+    model.switch_kwargs.update(label_smoothing=0.0, truncate_at_goal=True, contrast_env_goals=False)
     model.learn(10)
-    assert model.preference_pipeline.sampler.goal_reached is not None
+    sampler = model.preference_pipeline.sampler
+    assert sampler.goal_reached is not None and not sampler.contrast_env_goals
 
 
 def test_switches_from_the_zoo_are_converted_and_a_misspelt_key_is_named(env):

@@ -812,7 +812,9 @@ def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
     model.learn(100)
     model.save(tmp_path / "new.zip")
     # The file as DIPPER wrote it before switch_kwargs: each switch an attribute of its own.
-    saved_in_old_form(tmp_path / "new.zip", tmp_path / "old.zip", "switch_kwargs", newer_keys=("goal_episode_prob",))
+    saved_in_old_form(
+        tmp_path / "new.zip", tmp_path / "old.zip", "switch_kwargs", newer_keys=("goal_episode_prob", "contrast_env_goals")
+    )
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)  # loading an old file is no deprecated use

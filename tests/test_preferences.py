@@ -166,6 +166,22 @@ def test_a_pair_of_the_goal_driven_control_and_another_keeps_the_envs_goals():
     assert contrast > 20
 
 
+def test_without_contrast_env_goals_a_contrast_pair_takes_a_hindsight_goal_from_the_same_draws():
+    buffer = TrajectoryBuffer(capacity=4, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal=np.array([1.0, 1.0], np.float32), goal_driven=[True, True])
+    add_trajectory(buffer, [(0, 1), (0, 2)], goal=np.array([-1.0, -1.0], np.float32))
+    kept, hindsight = (
+        sample_trajectory_pairs(buffer, 100, 1.0, SPACE, np.random.default_rng(3), contrast_env_goals=contrast)
+        for contrast in (True, False)
+    )
+    goals = hindsight.observations["desired_goal"][:, :, 0]
+    assert np.array_equal(goals[0], goals[1]), "every pair shares a hindsight goal (hindsight_goal_prob=1)"
+    np.testing.assert_array_equal(kept.observations["observation"], hindsight.observations["observation"])
+    differs = np.any(kept.observations["desired_goal"] != hindsight.observations["desired_goal"], axis=(0, 2, 3))
+    contrast = np.any(kept.observations["desired_goal"][0, :, 0] != kept.observations["desired_goal"][1, :, 0], axis=-1)
+    assert contrast.any() and np.array_equal(differs, contrast), "only the contrast pairs' goals differ"
+
+
 def test_hindsight_actions_are_the_reached_subgoals_in_unit_coordinates(buffer):
     pairs = pairs_of(buffer, [0], [1])
     np.testing.assert_allclose(pairs.reached_actions[0, 0], [[0.2, 0.0], [0.4, 0.0], [0.6, 0.0]])

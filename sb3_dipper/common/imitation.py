@@ -33,7 +33,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
-from sb3_dipper.common.validation import InvalidSetting, as_float, as_optional_int, check_dict_keys
+from sb3_dipper.common.validation import InvalidSetting, as_bool, as_float, as_optional_int, check_dict_keys
 
 # The demonstration settings of a hierarchical algorithm's lower level (its ``demo_kwargs``), with their defaults; SACDemo
 # takes them too, but normalize_from_demos.
@@ -65,8 +65,7 @@ def checked_demo_kwargs(demo_kwargs: Mapping[str, Any], keys: Collection[str] = 
         settings["demo_share"] = as_float("demo_kwargs['demo_share']", settings["demo_share"], 0.0, 1.0)
         settings["bc_coef"] = as_float("demo_kwargs['bc_coef']", settings["bc_coef"], 0.0, reason="it weighs a loss")
         settings["rl_coef"] = as_float("demo_kwargs['rl_coef']", settings["rl_coef"], 0.0, reason="it weighs a loss")
-        if not isinstance(settings["q_filter"], (bool, np.bool_)):
-            raise InvalidSetting("q_filter", f"demo_kwargs['q_filter'] must be True or False, got {settings['q_filter']!r}")
+        settings["q_filter"] = as_bool("demo_kwargs['q_filter']", settings["q_filter"])
     except InvalidSetting as error:
         # The parameter is demo_kwargs: load names it in its advice (load(path, demo_kwargs=...)).
         raise InvalidSetting("demo_kwargs", str(error)) from None

@@ -78,10 +78,12 @@ def sample_trajectory_pairs(
     hindsight_goal_prob: float,
     subgoal_space: SubgoalSpace,
     rng: np.random.Generator,
+    contrast_env_goals: bool = True,
 ) -> TrajectoryPairs:
-    """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them, except
-    a pair of a goal-driven trajectory (:attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.goal_driven`) and
-    another, which compares the control with the other driver on the env's own goals."""
+    """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them, except,
+    with ``contrast_env_goals``, a pair of a goal-driven trajectory
+    (:attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.goal_driven`) and another, which compares the control with
+    the other driver on the env's own goals (the draws are the same either way)."""
     if len(buffer) < 2:
         raise ValueError("Preference pairs need at least two finished higher-level trajectories")
     indices = rng.integers(len(buffer), size=(2, n_pairs))
@@ -89,7 +91,7 @@ def sample_trajectory_pairs(
     next_achieved_goals = buffer.next_achieved_goals[indices]
     mask = np.stack([buffer.mask(indices[0]), buffer.mask(indices[1])])
 
-    contrast = buffer.goal_driven[indices[0]] != buffer.goal_driven[indices[1]]
+    contrast = (buffer.goal_driven[indices[0]] != buffer.goal_driven[indices[1]]) & contrast_env_goals
     share_goal = (rng.random(n_pairs) < hindsight_goal_prob) & ~contrast
     source = rng.integers(2, size=n_pairs)
     lengths = buffer.lengths[indices[source, np.arange(n_pairs)]]
@@ -195,19 +197,27 @@ class TrajectoryPairSampler(PairSampler):
     :param subgoal_space: the higher level's subgoal space (for the hindsight actions)
     :param goal_reached: end each pair when the first of its trajectories reaches the goal, as this tells (``None``:
         whole trajectories)
+    :param contrast_env_goals: a pair of a goal-driven trajectory and another keeps the env's goals
     """
 
     min_trajectories = 2
 
     def __init__(
-        self, hindsight_goal_prob: float, subgoal_space: SubgoalSpace, goal_reached: GoalReachedFn | None = None
+        self,
+        hindsight_goal_prob: float,
+        subgoal_space: SubgoalSpace,
+        goal_reached: GoalReachedFn | None = None,
+        contrast_env_goals: bool = True,
     ) -> None:
         self.hindsight_goal_prob = hindsight_goal_prob
         self.subgoal_space = subgoal_space
         self.goal_reached = goal_reached
+        self.contrast_env_goals = contrast_env_goals
 
     def sample(self, buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator) -> TrajectoryPairs:
-        pairs = sample_trajectory_pairs(buffer, n_pairs, self.hindsight_goal_prob, self.subgoal_space, rng)
+        pairs = sample_trajectory_pairs(
+            buffer, n_pairs, self.hindsight_goal_prob, self.subgoal_space, rng, self.contrast_env_goals
+        )
         return pairs if self.goal_reached is None else truncate_at_first_arrival(pairs, self.goal_reached)
 
 

@@ -236,6 +236,14 @@ def as_optional_float(name: str, value: Any, low: float = -math.inf, high: float
     return None if value is None else as_float(name, value, low, high, **kwargs)
 
 
+def as_bool(name: str, value: Any) -> bool:
+    """An on/off setting: ``True`` or ``False`` (numpy's booleans included), never a string such as ``"False"``, which
+    Python would take as on."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidSetting(name, f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def as_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
     """A setting that names one of ``choices`` (``value_reg``, ``planning``)."""
     if value not in choices:

@@ -43,6 +43,7 @@ from sb3_dipper.common.preferences import (
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import (
     InvalidSetting,
+    as_bool,
     as_choice,
     as_float,
     as_int,
@@ -69,6 +70,7 @@ DEFAULT_SWITCH_KWARGS: dict[str, Any] = dict(
     value_reg="paper",
     value_score_coef=1e-6,
     goal_episode_prob=0.0,
+    contrast_env_goals=True,
 )
 # The switches that were DIPPER's parameters before switch_kwargs (still taken as parameters, deprecated).
 LEGACY_SWITCHES = (
@@ -108,6 +110,8 @@ def checked_switch_kwargs(switch_kwargs: Mapping[str, Any]) -> dict[str, Any]:
         settings["reference"] = as_choice("switch_kwargs['reference']", settings["reference"], REFERENCE_POLICIES)
         settings["goal_subgoal_prob"] = as_float("switch_kwargs['goal_subgoal_prob']", settings["goal_subgoal_prob"], 0.0, 1.0)
         settings["goal_episode_prob"] = as_float("switch_kwargs['goal_episode_prob']", settings["goal_episode_prob"], 0.0, 1.0)
+        for key in ("hindsight_actions", "truncate_at_goal", "contrast_env_goals"):
+            settings[key] = as_bool(f"switch_kwargs['{key}']", settings[key])
         settings["value_reg"] = as_choice("switch_kwargs['value_reg']", settings["value_reg"], VALUE_REGULARIZERS)
         settings["value_score_coef"] = as_float(
             "switch_kwargs['value_score_coef']", settings["value_score_coef"], 0.0, reason="0 turns the value score off"
@@ -367,11 +371,12 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self._refresh_goal_anchor()
 
     def _apply_switches(self) -> None:
-        """Check ``switch_kwargs`` and set the part of the model built from them (the pairs' truncation at the goal), so
-        that a switch changed in ``model.switch_kwargs`` after the model was built acts from the next :meth:`learn`;
-        training reads the others from ``switch_kwargs`` where it uses them."""
+        """Check ``switch_kwargs`` and set the part of the model built from them (the pair sampler's truncation at the
+        goal and its contrast pairs' goals), so that a switch changed in ``model.switch_kwargs`` after the model was
+        built acts from the next :meth:`learn`; training reads the others from ``switch_kwargs`` where it uses them."""
         self.switch_kwargs = checked_switch_kwargs(self.switch_kwargs)
         self._pair_sampler.goal_reached = self._goal_reached if self.switch_kwargs["truncate_at_goal"] else None
+        self._pair_sampler.contrast_env_goals = self.switch_kwargs["contrast_env_goals"]
         if self.switch_kwargs["reference"] == "averaged" and self.policy.averaged_actor is None:
             raise ValueError(
                 "switch_kwargs['reference']='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 "
