@@ -47,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import plot
 
 from sb3_dipper.common.files import write_bytes_atomically
+from sb3_dipper.zoo.run_config import load_entry
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "docs" / "benchmarks"
@@ -62,24 +63,24 @@ TASKS = {  # task: (budget in primitive steps, short name)
     "FetchFourRoomMaze-v0": (700_000, "random Fetch mazes"),
 }
 PNP_FIXED, PUSH_FIXED, PNP, PUSH, KITCHEN, MAZE_FIXED, MAZE = TASKS
-# What every method that takes demonstrations learns from at the CPU profiles (the DART episodes where DIPPER's profile
-# takes them, the task's one scripted demonstration elsewhere); a cell learnt from other ones is marked.
-DEMONSTRATIONS = {
-    PNP_FIXED: "1 demonstration",
-    PUSH_FIXED: "1 demonstration",
-    PNP: "20 DART episodes",
-    PUSH: "200 DART episodes",
-    KITCHEN: "20 DART episodes",
-    MAZE_FIXED: "1 demonstration",
-    MAZE: "1 demonstration",
-}
 ONE_DEMONSTRATION = "†"
+
+
+def profile_demonstrations(task: str) -> str:
+    """What the ``dipper`` profile of ``task`` learns from (``demo_kwargs`` of hyperparams/dipper.yml), which every CPU
+    profile that takes demonstrations shares; a cell learnt from other ones is marked."""
+    demo_path = (load_entry("dipper", task).get("demo_kwargs") or {}).get("demo_path")
+    if demo_path is None:
+        return "no demonstrations"
+    if demo_path == "auto":
+        return "1 demonstration"
+    return f"{demo_path.removeprefix('auto:dart')} DART episodes"
 
 
 @dataclass(frozen=True)
 class Learning:
     """Final evaluations of the runs labelled ``label`` in a learning-curve CSV (``mark``: a cell learnt from other
-    demonstrations than the task's, :data:`DEMONSTRATIONS`)."""
+    demonstrations than the task's, :func:`profile_demonstrations`)."""
 
     label: str
     csv: str = "paper-tasks-cpu.csv"
@@ -294,6 +295,7 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
     figure's panels."""
     csv_rows = [["task", "column", "source", "seeds", "success", "steps_per_second", "speed_runs"]]
     panels: dict[str, dict[str, list[plot.Curve]]] = {task: {} for task in TASKS}
+    demonstrations = {task: profile_demonstrations(task) for task in TASKS}
     tables = []
     for columns, extra in ((DIPPER_COLUMNS, None), (HIERARCHICAL_COLUMNS, None), (FLAT_COLUMNS, "anchor (PIPER's code)")):
         header = ["task (budget, demonstrations)", *(heading for heading, _ in columns), *([extra] if extra else [])]
@@ -312,11 +314,12 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
                     seeds = str(len(value.success))
                     csv_rows.append([task, heading, where, seeds, value.text(), speed, str(len(value.speeds))])
             anchor = [ANCHORS.get(task, "")] if extra else []
-            lines.append(f"| `{task}` ({budget // 1000}k, {DEMONSTRATIONS[task]}) | " + " | ".join(cells + anchor) + " |")
+            lines.append(f"| `{task}` ({budget // 1000}k, {demonstrations[task]}) | " + " | ".join(cells + anchor) + " |")
         tables.append("\n".join(lines))
     legend = (
         f"{ONE_DEMONSTRATION}: learnt from the task's one scripted demonstration, not its DART episodes. Methods without "
-        "demonstrations: RAPS, DPO-FLAT, SAC+HER."
+        "demonstrations: RAPS, DPO-FLAT, SAC+HER; DAC, which cannot learn without them, takes the task's one scripted "
+        "demonstration where the others take none."
     )
     return "\n\n".join([*tables, legend]), csv_rows, panels
 

@@ -90,6 +90,12 @@ def test_the_matrix_is_written_between_the_markers_and_refused_without_them(resu
         report.write_between_markers(document, "| new |", "whose-success")
 
 
+def test_each_tasks_demonstrations_are_read_from_dippers_profile():
+    assert report.profile_demonstrations("FetchPickAndPlaceFixed-v0") == "1 demonstration"
+    assert report.profile_demonstrations("FetchPush-v4") == "200 DART episodes"
+    assert report.profile_demonstrations("FetchFourRoomMazeFixed-v0") == "no demonstrations"
+
+
 def test_every_column_names_one_configuration_per_task():
     tables, rows, _ = report.matrix()
     assert tables.count("| task (budget, demonstrations) |") == 3
