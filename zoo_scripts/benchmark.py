@@ -85,6 +85,7 @@ Protocols preset algorithms, tasks, seeds and budgets; flags given explicitly ov
 from __future__ import annotations
 
 import argparse
+import difflib
 import os
 import shutil
 import sys
@@ -93,6 +94,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import gymnasium as gym
 import plot
 from benchmarking.profile import (
     FUSED_ADAM,
@@ -272,6 +274,25 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
     return tables, curves
 
 
+def check_learning_arguments(args: argparse.Namespace, learning: argparse.ArgumentParser) -> None:
+    """Refuse, before any run folder is made, the algorithms, tasks and overrides every run would fail on."""
+    resolve_protocol(args)
+    unknown_algos = [algo for algo in args.algos if algo not in ALGORITHMS]
+    if unknown_algos:
+        known = " ".join(ALGORITHMS)
+        learning.error(f"--algos {' '.join(unknown_algos)}: not a zoo name of hyperparams/; choose from {known}")
+    for env_id in args.envs:
+        if env_id not in gym.registry:
+            closest = difflib.get_close_matches(env_id, list(gym.registry), n=1)
+            hint = f"did you mean {closest[0]}?" if closest else "the tasks are listed in docs/guide/environments.rst"
+            learning.error(f"--envs {env_id}: no such registered env; {hint}")
+    try:
+        zoo_pairs("--set", args.set)
+        zoo_pairs("--env-kwargs", args.env_kwargs)
+    except ValueError as error:
+        learning.error(str(error))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -353,6 +374,7 @@ def main() -> None:
             learning.error(f"--previous-csv {args.previous_csv}: no such file (a CSV an earlier report wrote)")
         if args.variant == DEFAULT_VARIANT:
             learning.error(f"--variant {DEFAULT_VARIANT} names the folder of the runs without a variant: choose another")
+        check_learning_arguments(args, learning)
     commands_run = {"throughput": run_throughput, "profiles": run_profiles, "updates": run_updates, "learning": run_learning}
     commands_run[args.command](args)
 

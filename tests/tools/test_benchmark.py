@@ -310,6 +310,31 @@ def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys)
     assert "--previous-csv" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--algos", "dipperx"], "--algos dipperx: not a zoo name of hyperparams/; choose from dipper "),
+        (["--envs", "FetchPickAndPlaceFixd-v0"], "did you mean FetchPickAndPlaceFixed-v0?"),
+        (["--set", "beta=0.1)"], "--set beta=0.1): '0.1)' is not a Python expression"),
+        (["--set", "preference_source=progress"], "quote a string"),
+        (["--env-kwargs", "max_episode_steps"], "--env-kwargs takes key=value"),
+    ],
+)
+def test_learning_refuses_what_every_run_would_fail_on_before_making_a_folder(
+    tmp_path, monkeypatch, capsys, arguments, message
+):
+    """An unknown algorithm or task, or an override rl-zoo3 cannot read, fails every run after its start-up: the
+    command says so at once, naming the option, and makes no run folder."""
+    out = tmp_path / "out"
+    argv = ["benchmark.py", "learning", "--algos", "dipper", "--envs", ENV_ID, "--seeds", "0", "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", [*argv, *arguments])
+    with pytest.raises(SystemExit) as exited:
+        benchmark.main()
+    assert exited.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_overrides_become_the_zoo_s_flags():
     args = argparse.Namespace(
         eval_freq=150, eval_episodes=20, n_eval_envs=None, n_timesteps=None, pause_after_minutes=None, save_freq=None
