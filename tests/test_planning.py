@@ -291,6 +291,16 @@ def test_planner_share_measures_a_baseline_three_ways_and_refuses_a_scripted_low
         planner_share.measure(raps_run, "raps", "PointMazeFourRooms-v0", n_episodes=1)
 
 
+def test_planner_share_refuses_a_folder_that_is_not_there_before_measuring_any(tmp_path, monkeypatch, capsys):
+    run = tmp_path / "dipper" / "PointMazeFourRooms-v0_1"
+    run.mkdir(parents=True)
+    monkeypatch.setattr(sys, "argv", ["planner_share.py", str(run), str(tmp_path / "typo_1"), "--checkpoints"])
+    with pytest.raises(SystemExit) as exited:
+        planner_share.main()
+    assert exited.value.code == 2
+    assert f"{tmp_path / 'typo_1'}: no such run folder" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------- who acts where the planner did not
 
 

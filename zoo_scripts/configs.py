@@ -71,6 +71,9 @@ def measure_runs(
     """
     case_column, *metrics = columns
     rows = [",".join(("run", "steps", case_column, *metrics))]
+    missing = [str(run) for run in args.runs if not run.is_dir()]
+    if missing:
+        parser.error(f"{', '.join(missing)}: no such run folder (a zoo run folder, e.g. logs/dipper/<env>_1)")
     for run in args.runs:
         env_id = args.env or run.name.rsplit("_", 1)[0]
         models: list[Path | None] = list(checkpoints(run)) if args.checkpoints else []
