@@ -308,7 +308,7 @@ def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
     try:
         flags, rest = run_control_parser().parse_known_args(argv)
     except argparse.ArgumentError as error:
-        raise ValueError(f"sb3-dipper-zoo train: {error}") from None
+        raise ValueError(str(error)) from None
     if flags.pause_after_minutes is not None and not flags.pause_after_minutes >= 0:
         raise ValueError(f"--pause-after-minutes must be >= 0 minutes, got {flags.pause_after_minutes}")
     if flags.resume is not None and not (flags.resume / RESUME_FOLDER / RESUME_MODEL).is_file():
@@ -327,7 +327,12 @@ def main() -> None:
         # Before our flags are checked: a help request is answered whatever else the command line holds.
         print_train_help()
         return
-    control, argv = split_run_control(sys.argv[2:]) if command == "train" else (RunControl(), sys.argv[2:])
+    try:
+        control, argv = split_run_control(sys.argv[2:]) if command == "train" else (RunControl(), sys.argv[2:])
+    except (ValueError, FileNotFoundError) as error:
+        # A usage error, as argparse reports its own: one line and exit status 2, not a traceback.
+        print(f"sb3-dipper-zoo {command}: error: {error}", file=sys.stderr)
+        sys.exit(2)
     register(control)
     argv = zoo_argv(command, argv)
     # rl-zoo3's parsers name the program after sys.argv[0]: their usage lines then read `sb3-dipper-zoo train ...`.

@@ -31,6 +31,7 @@ from sb3_dipper.zoo import (
     set_aside_part,
     split_run_control,
 )
+from sb3_dipper.zoo import main as zoo_main
 from tests.conftest import short_maze, tiny_model
 from tests.test_files import truncate
 from tests.tools.test_benchmark import ENV_ID, learning_command, run_folder
@@ -123,6 +124,24 @@ def test_the_pause_and_resume_flags_are_ours_and_checked(tmp_path):
         split_run_control(["--resume", str(tmp_path)])
     fake_checkpoint(tmp_path, num_timesteps=10)
     assert split_run_control(["--resume", str(tmp_path)])[0].resume == tmp_path
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--pause-after-minutes", "-1"], "sb3-dipper-zoo train: error: --pause-after-minutes must be >= 0 minutes"),
+        (["--resume", "nowhere"], "sb3-dipper-zoo train: error: --resume nowhere: no resume checkpoint"),
+        (["--label-page", "localhost:port"], "sb3-dipper-zoo train: error: --label-page"),
+    ],
+)
+def test_the_command_reports_a_bad_flag_as_a_usage_error(monkeypatch, capsys, flags, message):
+    """One line naming the flag and exit status 2, as argparse reports its own errors, not a traceback."""
+    monkeypatch.setattr(sys, "argv", ["sb3-dipper-zoo", "train", "--algo", "sac", *flags])
+    with pytest.raises(SystemExit) as exited:
+        zoo_main()
+    assert exited.value.code == 2
+    error = capsys.readouterr().err
+    assert error.startswith(message) and error.count("\n") == 1
 
 
 def test_an_algorithm_without_a_replay_buffer_cannot_pause(tmp_path):
