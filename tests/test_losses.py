@@ -7,6 +7,7 @@ import torch as th
 from stable_baselines3.common.distributions import SquashedDiagGaussianDistribution
 
 from sb3_dipper.common.losses import (
+    anchor_penalty,
     at_real_steps,
     dipper_logits,
     dipper_loss,
@@ -163,6 +164,14 @@ def test_preferred_nll_uses_the_preferred_side_and_skips_ties():
     # Pair 0: tau^1 mean -2; pair 1: tau^2, one real step, -4; pair 2 (tie) is skipped. NLL = (2 + 4) / 2 = 3.
     assert preferred_nll(log_probs, mask, labels).item() == pytest.approx(3.0)
     assert preferred_nll(log_probs, mask, th.full((3,), 0.5)).item() == 0.0
+
+
+def test_anchor_penalty_is_the_mean_squared_norm_of_the_offsets():
+    offsets = th.tensor([[3.0, 4.0], [0.0, 1.0]], requires_grad=True)
+    penalty = anchor_penalty(offsets)
+    assert penalty.item() == pytest.approx((25.0 + 1.0) / 2)
+    penalty.backward()  # d/do (mean_i ||o_i||^2) = 2 o / N
+    assert offsets.grad.tolist() == [[3.0, 4.0], [0.0, 1.0]]
 
 
 def test_real_step_values_go_back_to_their_steps_with_zero_padding():

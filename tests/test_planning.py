@@ -20,6 +20,7 @@ from gymnasium import spaces
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.save_util import data_to_json
+from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_dipper import DIPPER, HIER, RAPS, DPOFlat
@@ -555,6 +556,31 @@ def test_a_goal_anchored_policy_starts_at_the_goal_and_learns_offsets_from_it(no
     np.testing.assert_allclose(proposals(model, observation), goals, atol=1e-3 * 7.0)
 
 
+def test_the_anchor_leash_holds_a_goal_anchored_policy_nearer_the_goal(tmp_path):
+    """With ``anchor_coef`` the squared offset from the goal's action joins the loss: the same run (seed, pairs) ends
+    with its proposals nearer the goal than without it, and the mean offset is logged."""
+    env = short_maze(n_envs=2)
+
+    def offsets(anchor_coef):
+        model = tiny_model(
+            DIPPER, env, policy_kwargs=dict(net_arch=[16], goal_anchored=True), switch_kwargs=dict(anchor_coef=anchor_coef)
+        )
+        model.set_logger(configure(str(tmp_path / str(anchor_coef)), ["csv"]))
+        model.learn(200)
+        with th.no_grad():
+            observation = obs_as_tensor(env.reset(), model.device)
+            return model.policy.actor.offset_from_the_anchor(observation).abs().max().item()
+
+    free = offsets(0.0)
+    leashed = offsets(100.0)
+    assert leashed < free / 2
+    logged = pd.read_csv(tmp_path / "100.0" / "progress.csv")["train/high_anchor_offset"].dropna()
+    assert len(logged) and (logged >= 0).all()
+    assert "train/high_anchor_offset" not in pd.read_csv(tmp_path / "0.0" / "progress.csv")
+    with pytest.raises(ValueError, match=r"switch_kwargs\['anchor_coef'\] pulls a goal-anchored policy's subgoals"):
+        tiny_model(DIPPER, env, switch_kwargs=dict(anchor_coef=1.0))
+
+
 def test_goal_anchoring_needs_a_goal_and_a_subgoal_box():
     with pytest.raises(ValueError, match="goal_anchored=True anchors the higher level's subgoals at the observed goal"):
         DIPPERPolicy(spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,)), lambda _: 1e-3, goal_anchored=True)
@@ -823,7 +849,10 @@ def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
     model.save(tmp_path / "new.zip")
     # The file as DIPPER wrote it before switch_kwargs: each switch an attribute of its own.
     saved_in_old_form(
-        tmp_path / "new.zip", tmp_path / "old.zip", "switch_kwargs", newer_keys=("goal_episode_prob", "contrast_env_goals")
+        tmp_path / "new.zip",
+        tmp_path / "old.zip",
+        "switch_kwargs",
+        newer_keys=("goal_episode_prob", "contrast_env_goals", "anchor_coef"),
     )
 
     with warnings.catch_warnings():

@@ -140,3 +140,12 @@ def preferred_nll(log_probs: th.Tensor, mask: th.Tensor, labels: th.Tensor) -> t
     chosen_mask = mask[preferred, pair_index][strict]
     per_pair = (chosen_log_probs * chosen_mask).sum(dim=-1) / chosen_mask.sum(dim=-1).clamp(min=1.0)
     return -per_pair.mean()
+
+
+def anchor_penalty(offsets: th.Tensor) -> th.Tensor:
+    """Mean squared norm of a goal-anchored policy's offsets from the goal's action, ``mean_i ||o_i||^2``: a leash that
+    keeps its subgoals at the goal unless the preference loss pulls harder.
+
+    :param offsets: pre-``tanh`` offsets, shape ``(N, d)``
+    """
+    return offsets.pow(2).sum(dim=-1).mean()

@@ -21,6 +21,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from sb3_dipper.common.deprecation import DeprecatedAttribute, MovedParameter
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
 from sb3_dipper.common.losses import (
+    anchor_penalty,
     at_real_steps,
     dipper_loss,
     preference_accuracy,
@@ -71,6 +72,7 @@ DEFAULT_SWITCH_KWARGS: dict[str, Any] = dict(
     value_score_coef=1e-6,
     goal_episode_prob=0.0,
     contrast_env_goals=True,
+    anchor_coef=0.0,
 )
 # The switches that were DIPPER's parameters before switch_kwargs (still taken as parameters, deprecated).
 LEGACY_SWITCHES = (
@@ -116,6 +118,9 @@ def checked_switch_kwargs(switch_kwargs: Mapping[str, Any]) -> dict[str, Any]:
         settings["value_score_coef"] = as_float(
             "switch_kwargs['value_score_coef']", settings["value_score_coef"], 0.0, reason="0 turns the value score off"
         )
+        settings["anchor_coef"] = as_float(
+            "switch_kwargs['anchor_coef']", settings["anchor_coef"], 0.0, reason="it weighs a loss; 0 turns it off"
+        )
     except InvalidSetting as error:
         # The parameter is switch_kwargs: load names it in its advice (load(path, switch_kwargs=...)).
         raise InvalidSetting("switch_kwargs", str(error)) from None
@@ -156,11 +161,15 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         ``value_score_coef * sum_t V^L(s_t, g_t)`` added to the preference score at labelling; ``"reparam"``,
         ``-lambda * E_{u ~ pi^H}[V^L(s, g(u))]`` added to the loss), ``value_score_coef`` (the weight of that sum
         with ``"score"``, in place of lambda; default 1e-6, the PIPER code's ``q_reg``, so that the value only breaks
-        ties) and ``goal_episode_prob`` (probability that an env's training episode is driven by the goal as every
-        subgoal, the control, so that pairs compare whole control trajectories with the policy's; 0: off), for example
+        ties), ``goal_episode_prob`` (probability that an env's training episode is driven by the goal as every
+        subgoal, the control, so that pairs compare whole control trajectories with the policy's; 0: off),
+        ``contrast_env_goals`` (whether a pair of a goal-driven trajectory and another keeps the env's goals instead of
+        a hindsight goal; default True) and ``anchor_coef`` (weight of a goal-anchored policy's squared offset from
+        the goal's action added to the loss, a leash that keeps its subgoals at the goal where the preferences do not
+        pull them off; needs ``policy_kwargs`` ``goal_anchored=True``; 0: off), for example
         ``dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True)``
         (:data:`DEFAULT_SWITCH_KWARGS`); ``model.switch_kwargs`` holds them all, and a key changed there acts from the
-        next :meth:`learn`. Each key but ``goal_episode_prob`` is also taken as a parameter of its own, deprecated
+        next :meth:`learn`. Each key but the last three is also taken as a parameter of its own, deprecated
     :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
         :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
         ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
@@ -377,6 +386,11 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.switch_kwargs = checked_switch_kwargs(self.switch_kwargs)
         self._pair_sampler.goal_reached = self._goal_reached if self.switch_kwargs["truncate_at_goal"] else None
         self._pair_sampler.contrast_env_goals = self.switch_kwargs["contrast_env_goals"]
+        if self.switch_kwargs["anchor_coef"] > 0.0 and not self.policy.goal_anchored:
+            raise ValueError(
+                "switch_kwargs['anchor_coef'] pulls a goal-anchored policy's subgoals toward the goal: set policy_kwargs "
+                "goal_anchored=True, or leave anchor_coef at 0"
+            )
         if self.switch_kwargs["reference"] == "averaged" and self.policy.averaged_actor is None:
             raise ValueError(
                 "switch_kwargs['reference']='averaged' needs an averaged actor: set policy_kwargs acting_tau below 1 "
@@ -564,7 +578,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         """``high_gradient_steps`` DIPPER updates of the higher policy on sampled labelled pairs."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.actor.optimizer)
-        dpo_losses, nll_losses, accuracies, value_gaps, tie_shares = [], [], [], [], []
+        dpo_losses, nll_losses, accuracies, value_gaps, tie_shares, anchor_offsets = [], [], [], [], [], []
         switches = self.switch_kwargs
         value_term = switches["value_reg"] if self.value_reg_coef != 0.0 else None
         for _ in range(self.high_gradient_steps):
@@ -586,6 +600,12 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 nll = preferred_nll(log_probs, mask, labels)
                 loss = loss + switches["nll_coef"] * nll
                 nll_losses.append(nll.item())
+
+            # Optional: a leash that keeps a goal-anchored policy at the goal where the preferences do not pull it off.
+            if switches["anchor_coef"] > 0.0:
+                leash = anchor_penalty(self.policy.actor.offset_from_the_anchor(observations))
+                loss = loss + switches["anchor_coef"] * leash
+                anchor_offsets.append(leash.item())
 
             # Optional: push proposals toward subgoals the lower level values (value_reg="reparam").
             if value_term == "reparam":
@@ -611,6 +631,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.logger.record("train/high_tie_share", float(np.mean(tie_shares)))
         if nll_losses:
             self.logger.record("train/high_nll", float(np.mean(nll_losses)))
+        if anchor_offsets:
+            self.logger.record("train/high_anchor_offset", float(np.mean(anchor_offsets)))
         if accuracies:
             self.logger.record("train/high_pref_accuracy", float(np.mean(accuracies)))
         if value_gaps:

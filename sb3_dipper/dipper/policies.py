@@ -82,6 +82,11 @@ class FlooredStdActor(Actor):
             nn.init.zeros_(self.mu.weight)
             nn.init.zeros_(self.mu.bias)
 
+    def offset_from_the_anchor(self, obs: PyTorchObs) -> th.Tensor:
+        """The pre-``tanh`` mean's offset from the goal's action (the network's own output), shape ``(N, d)``."""
+        assert self.goal_anchor is not None, "only a goal-anchored actor has an offset from the goal"
+        return super().get_action_dist_params(obs)[0]
+
     def get_action_dist_params(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
         mean_actions, log_std, kwargs = super().get_action_dist_params(obs)
         if self.goal_anchor is not None:
