@@ -101,6 +101,7 @@ Source = Learning | Evaluated
 # The DIPPER profile of hyperparams/dipper.yml on each task, and the runs of its controls.
 DIPPER_PROFILE: dict[str, Source] = {
     PNP_FIXED: Learning("dipper-goal-episodes"),
+    PUSH_FIXED: Learning("dipper-goal-episodes"),
     PNP: Learning("dipper-planner-fixed"),
     KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
     MAZE_FIXED: Learning("dipper_paper-low64"),
@@ -112,6 +113,7 @@ def final_models(case: str) -> dict[str, Source]:
     """The final models of the ``dipper`` profile's runs evaluated as ``case`` (``zoo_scripts/research/planner_share.py``)."""
     sources: dict[str, Source] = {
         PNP_FIXED: Evaluated("planner-share-goal-episodes-profile.csv", "FetchPickAndPlaceFixed", case),
+        PUSH_FIXED: Evaluated("planner-share-goal-episodes-push.csv", "FetchPushFixed", case),
         PNP: Evaluated("planner-share-planner-fixed.csv", "FetchPickAndPlace-v4", case),
     }
     # Without a planner the model as trained is its policy alone.

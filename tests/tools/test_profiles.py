@@ -230,7 +230,7 @@ def test_dac_discriminates_against_dippers_demonstrations_where_its_profile_take
 SWITCHES = {"nll_coef", "hindsight_actions", "truncate_at_goal"}
 MEASURED_SWITCHES = {
     "FetchPickAndPlaceFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
-    "FetchPushFixed-v0": SWITCHES,
+    "FetchPushFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPickAndPlace-v4": SWITCHES,
     "FetchPush-v4": SWITCHES,
 }
