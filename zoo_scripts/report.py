@@ -146,7 +146,7 @@ DIPPER_COLUMNS: list[tuple[str, dict[str, Source]]] = [
         "paper's DIPPER",
         everywhere(
             "dipper_paper",
-            {task: Learning("dipper_paper-demo1", mark=ONE_DEMONSTRATION) for task in (PNP, PUSH, KITCHEN)},
+            {task: Learning("dipper_paper-demo1", mark=ONE_DEMONSTRATION) for task in (PUSH, KITCHEN)},
         ),
     ),
 ]
@@ -186,6 +186,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP, "PIPER", "planner-share-pnp-random-baselines.csv", "/piper/"),
     (PNP, "DIPPER-No-V", "planner-share-pnp-random-baselines.csv", "/dipper_nov/"),
     (PNP, "SAGA", "planner-share-pnp-random-baselines.csv", "/saga/"),
+    (PNP, "paper's DIPPER", "planner-share-pnp-random-baselines.csv", "/dipper_paper/"),
     (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
 ]
