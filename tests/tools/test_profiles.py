@@ -231,7 +231,7 @@ SWITCHES = {"nll_coef", "hindsight_actions", "truncate_at_goal"}
 MEASURED_SWITCHES = {
     "FetchPickAndPlaceFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPushFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
-    "FetchPickAndPlace-v4": SWITCHES,
+    "FetchPickAndPlace-v4": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPush-v4": SWITCHES,
 }
 
