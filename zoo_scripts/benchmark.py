@@ -233,7 +233,7 @@ __all__ = [
 
 
 def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, dict[str, Curves]]]:
-    resolve_protocol(args)
+    """The ``learning`` command, its arguments resolved (:func:`resolve_protocol`) and checked by :func:`main`."""
     # Absolute, so that Ray workers, whose working directory differs, write to the same place.
     out = Path(args.out).resolve()
     flags = zoo_flags(args)
@@ -275,8 +275,8 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
 
 
 def check_learning_arguments(args: argparse.Namespace, learning: argparse.ArgumentParser) -> None:
-    """Refuse, before any run folder is made, the algorithms, tasks and overrides every run would fail on."""
-    resolve_protocol(args)
+    """Refuse, before any run folder is made, the algorithms, tasks and overrides every run would fail on (``args``
+    resolved by :func:`resolve_protocol`)."""
     unknown_algos = [algo for algo in args.algos if algo not in ALGORITHMS]
     if unknown_algos:
         known = " ".join(ALGORITHMS)
@@ -374,6 +374,7 @@ def main() -> None:
             learning.error(f"--previous-csv {args.previous_csv}: no such file (a CSV an earlier report wrote)")
         if args.variant == DEFAULT_VARIANT:
             learning.error(f"--variant {DEFAULT_VARIANT} names the folder of the runs without a variant: choose another")
+        resolve_protocol(args)
         check_learning_arguments(args, learning)
     commands_run = {"throughput": run_throughput, "profiles": run_profiles, "updates": run_updates, "learning": run_learning}
     commands_run[args.command](args)
