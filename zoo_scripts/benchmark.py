@@ -36,7 +36,7 @@ the training and the evaluation envs), and each run is an ordinary zoo run folde
     OUT/<variant or default>/seed_<n>/<algo>/<env>.log     the zoo's output of the run's last attempt
 
 A run with ``result.json`` is skipped, so rerunning the same command after a crash redoes only the unfinished runs (their
-leftover folders are removed first). Runs longer than a session are trained in parts: with ``--pause-after-minutes M``
+leftover folders are removed first). Runs longer than one sitting are trained in parts: with ``--pause-after-minutes M``
 each run pauses after M minutes of training with a resume checkpoint in its folder (``resume/``, see
 ``sb3-dipper-zoo train --pause-after-minutes``), and rerunning the command continues every paused run where it stopped,
 in the same folder and on the same evaluation grid (``parts.json`` adds up the parts' time for ``result.json``).
@@ -53,7 +53,7 @@ The tables are printed and the figure written to ``OUT/<name>.png``; only ``--wr
 BENCHMARKS.md (``--benchmarks-md``) and the figure and the CSV into docs/benchmarks/ (``--figures-dir``). Run folders
 do not outlive the machine they ran on; the CSV does: with ``--previous-csv docs/benchmarks/<name>.csv`` a later report
 takes every run it lists that has no folder in ``--out`` from it (its ``finished`` column keeps partial runs partial),
-so a table grows across machines and sessions (the CSV's steps, success and metrics are the table's). rl-zoo3
+so a table grows across machines and sittings (the CSV's steps, success and metrics are the table's). rl-zoo3
 evaluates every ``--eval-freq`` steps, so a budget that is not a multiple of it ends with its last evaluation up to
 ``--eval-freq`` steps before the end.
 

@@ -3,14 +3,14 @@
 The maze is 9 x 9 cells of 1 m (outer walls included): four 3 x 3 rooms joined by four one-cell doorways. An
 episode starts at a random cell of the start room (bottom left by default) and the goal is a random cell of the
 opposite room (top right), both with gymnasium-robotics' +-0.25 m position noise. The ball needs about 150
-primitive steps at full speed along the shortest path, so a 300-step episode leaves room for one detour but not
-for wandering: flat SAC+HER stays at 0 % here for 130k steps, which is the gap a hierarchy must close.
+primitive steps at full speed along the shortest path, so a 200-step episode leaves little room for wandering: the
+gap a hierarchy must close (how flat SAC+HER and the hierarchies do here: BENCHMARKS.md, the fast maze).
 
 Differences from the upstream env, all chosen so the task is a standard SB3 goal env:
 
 - reward ``-1 / 0`` (sparse, as the Fetch tasks) with a vectorised ``compute_reward``;
 - ``info["is_success"]`` (SB3's key), true while the ball is within ``distance_threshold`` (0.45 m) of the goal;
-- no termination: an episode is ``max_episode_steps`` (300) long and counts as a success if it ends at the goal,
+- no termination: an episode is ``max_episode_steps`` (200) long and counts as a success if it ends at the goal,
   as the paper's tasks measure success at the last step.
 """
 

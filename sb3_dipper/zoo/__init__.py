@@ -213,7 +213,7 @@ def zoo_argv(command: str, argv: list[str]) -> list[str]:
     - ``--env module:EnvId`` (gymnasium's form, which imports ``module`` to register the id) becomes ``--env EnvId``
       after that import: rl-zoo3 looks plain ids up in gymnasium's registry and names run folders after them.
     - ``train`` reads our ``hyperparams/<algo>.yml`` unless ``--conf-file`` is given; for an env without an entry there,
-      rl-zoo3 uses its ``default`` entry (the paper-scale profile for any goal env).
+      rl-zoo3 uses its ``default`` entry (the CPU profile for any goal env).
 
     Added flags go last: argparse keeps the last value of a repeated flag. The plot commands' flags pass unchanged
     (their ``--env`` names run folders, several at a time).

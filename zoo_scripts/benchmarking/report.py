@@ -119,8 +119,8 @@ def run_seed_curve(run: Path, seed: int) -> SeedCurve | None:
 
 
 def read_report_csv(path: Path) -> dict[tuple[str, str, int], SeedCurve]:
-    """The runs of a CSV that :func:`report` wrote, by ``(env, name, seed)``: runs whose folders are gone (a past
-    session's machine, another machine) still count in a later report (``--previous-csv``).
+    """The runs of a CSV that :func:`report` wrote, by ``(env, name, seed)``: runs whose folders are gone (an earlier
+    machine that no longer exists, another machine) still count in a later report (``--previous-csv``).
 
     :raises ValueError: the file lacks a column :func:`report` writes (names the file and the columns)
     """

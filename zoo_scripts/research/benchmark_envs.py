@@ -3,7 +3,7 @@
     MUJOCO_GL=egl python zoo_scripts/research/benchmark_envs.py                       # every task, 100 expert episodes each
     MUJOCO_GL=egl python zoo_scripts/research/benchmark_envs.py --envs FetchPush-v4 --expert-episodes 20
 
-Writes the ``envs`` section of BENCHMARKS.md (with command, machine and date) and one frame per task to
+Writes (or appends) the ``envs`` section of BENCHMARKS.md (with command, machine and date) and one frame per task to
 ``docs/tasks/<env>.png`` for the README's task table.
 """
 
