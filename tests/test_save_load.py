@@ -154,6 +154,44 @@ def test_same_seed_same_first_thousand_steps(model_class):
     assert_same_state(parameters_a, parameters_b)
 
 
+# What the ``dipper`` profiles of the paper's tasks turn on beyond the paper: progress labels, goal episodes, executed
+# subgoals, a planner steering training only, a goal-anchored policy with a floor on its log-std, the anchor's leash.
+PROFILE_SETTINGS = dict(
+    preference_source="progress",
+    switch_kwargs=dict(nll_coef=1.0, hindsight_actions=False, truncate_at_goal=True, goal_episode_prob=0.5, anchor_coef=0.1),
+    planner_kwargs=dict(mode="subgoal", lookahead=2, in_predict=False),
+    policy_kwargs=dict(net_arch=[16], acting_tau=0.05, log_std_min=-2.0, goal_anchored=True),
+)
+
+
+def test_dippers_profile_settings_give_the_same_run_and_resume_from_a_checkpoint(tmp_path):
+    """The profiles' switches draw their randomness (goal episodes, planner, tie-breaks) from the seeded streams, and
+    a checkpoint of such a model loads without an env, predicts as saved and trains on with its buffers."""
+    runs = []
+    for _ in range(2):
+        model = tiny_model(DIPPER, short_maze(n_envs=2, seed=2), seed=11, learning_starts=100, **PROFILE_SETTINGS)
+        model.learn(600)
+        runs.append((model.get_parameters(), stored_data(model)))
+    (parameters_a, data_a), (parameters_b, data_b) = runs
+    assert_same_data(data_a, data_b)
+    assert_same_state(parameters_a, parameters_b)
+    # The run met what the settings do: goal-driven and policy-driven episodes, labelled pairs, higher-level updates.
+    trajectories = model.trajectory_buffer
+    assert 0 < trajectories.goal_driven[: len(trajectories)].sum() < len(trajectories)
+    assert len(model.preferences) > 0 and model._n_updates > 0
+
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded = DIPPER.load(tmp_path / "model")
+    assert loaded.switch_kwargs == model.switch_kwargs and not loaded.planner.in_predict
+    np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
+    loaded.set_env(short_maze(n_envs=2, seed=3))
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert_same_data(stored_data(loaded), stored_data(model))
+    loaded.learn(100, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 700
+
+
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_a_different_seed_gives_a_different_run(model_class):
     first = any_tiny_model(model_class, short_maze(seed=2), seed=1)
