@@ -105,7 +105,7 @@ DIPPER_PROFILE: dict[str, Source] = {
     PUSH_FIXED: Learning("dipper-goal-episodes"),
     PNP: Learning("dipper-anchored-goalep"),
     KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
-    MAZE_FIXED: Learning("dipper_paper-low64"),
+    MAZE_FIXED: Learning("dipper-goal-episodes"),
     MAZE: Learning("dipper_paper-low64"),
 }
 
@@ -116,6 +116,7 @@ def final_models(case: str) -> dict[str, Source]:
         PNP_FIXED: Evaluated("planner-share-goal-episodes-profile.csv", "FetchPickAndPlaceFixed", case),
         PUSH_FIXED: Evaluated("planner-share-goal-episodes-push.csv", "FetchPushFixed", case),
         PNP: Evaluated("planner-share-anchored-goalep.csv", "/anchored-goalep/", case),
+        MAZE_FIXED: Evaluated("planner-share-goal-episodes-maze.csv", "FetchFourRoomMazeFixed", case),
     }
     # Without a planner the model as trained is its policy alone.
     kitchen_case = "as_trained" if case == "policy_alone" else case

@@ -233,6 +233,7 @@ MEASURED_SWITCHES = {
     "FetchPushFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPickAndPlace-v4": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPush-v4": SWITCHES,
+    "FetchFourRoomMazeFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
 }
 
 
