@@ -15,9 +15,11 @@ from sb3_dipper.common.preferences import (
     TrajectoryPairs,
     TrajectoryPairSampler,
     final_goal_distances,
+    goal_distance_gains,
     labels_from_scores,
     load_preference_data,
     pairs_due,
+    progress_gain_labels,
     progress_labels,
     relabel_hindsight_actions,
     sample_trajectory_pairs,
@@ -40,9 +42,13 @@ def goal_reached(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
 
 
 def add_trajectory(
-    buffer: TrajectoryBuffer, path: list[tuple[float, float]], goal: np.ndarray = GOAL, goal_driven: list[bool] | None = None
+    buffer: TrajectoryBuffer,
+    path: list[tuple[float, float]],
+    goal: np.ndarray = GOAL,
+    goal_driven: list[bool] | None = None,
+    start: tuple[float, float] = (0.0, 0.0),
 ) -> None:
-    position = np.zeros(2, dtype=np.float32)
+    position = np.array(start, dtype=np.float32)
     for step, point in enumerate(path):
         obs = {"observation": position[None], "achieved_goal": position[None], "desired_goal": goal[None]}
         done = np.array([step == len(path) - 1])
@@ -303,6 +309,27 @@ def test_progress_tie_breaker_answers_only_the_scripts_ties(buffer, spec):
         ProgressTieBreaker().label(pairs)
     with pytest.raises(ValueError, match="preference_source"):
         preference_source_from("progress:3", script)
+
+
+@pytest.mark.parametrize("spec", ["progress:gain", {"kind": "progress", "measure": "gain"}])
+def test_the_gain_answers_ties_by_the_progress_each_trajectory_made_not_where_it_began(spec):
+    buffer = TrajectoryBuffer(capacity=4, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    # Neither reaches GOAL (3, 0): trajectory 0 starts 1 away and ends 1.5 away (gain -0.5); trajectory 1 starts 6 away
+    # and ends 2 away (gain 4).
+    add_trajectory(buffer, [(2.0, 1.0), (1.5, 0.0)], start=(2.0, 0.0))
+    add_trajectory(buffer, [(-1.0, 0.0), (1.0, 0.0)], start=(-3.0, 0.0))
+    pairs = pairs_of(buffer, [0, 1], [1, 0])
+    np.testing.assert_allclose(goal_distance_gains(pairs), [[-0.5, 4.0], [4.0, -0.5]], atol=1e-6)
+    np.testing.assert_array_equal(progress_gain_labels(pairs), [0.0, 1.0])
+    script = PrimitiveInTheLoopLabeler(goal_reached)
+    np.testing.assert_array_equal(script.label(pairs), [0.5, 0.5])
+    # The distance at the end prefers trajectory 0, which began nearer; the gain prefers trajectory 1.
+    np.testing.assert_array_equal(preference_source_from("progress", script).label(pairs), [1.0, 0.0])
+    source = preference_source_from(spec, script)
+    assert isinstance(source, ProgressTieBreaker) and source.measure == "gain"
+    np.testing.assert_array_equal(source.label(pairs), [0.0, 1.0])
+    with pytest.raises(ValueError, match="measure must be one of"):
+        preference_source_from({"kind": "progress", "measure": "start"}, script)
 
 
 # ---------------------------------------------------------------------------------------------------- the pipeline

@@ -259,6 +259,20 @@ def progress_labels(pairs: TrajectoryPairs) -> np.ndarray:
     return labels_from_scores(-final_goal_distances(pairs))
 
 
+def goal_distance_gains(pairs: TrajectoryPairs) -> np.ndarray:
+    """``(2, B)``: how much nearer the pair's goal each trajectory ended than it started (start distance minus
+    :func:`final_goal_distances`). Where the two trajectories of a pair start apart (tasks with random starts and
+    goals), the distance at the end favours the one that began nearer its goal; the gain does not."""
+    first = pairs.observations
+    start = np.linalg.norm(first["achieved_goal"][:, :, 0] - first["desired_goal"][:, :, 0], axis=-1)
+    return start - final_goal_distances(pairs)
+
+
+def progress_gain_labels(pairs: TrajectoryPairs) -> np.ndarray:
+    """Labels of an oracle of the progress each trajectory made: the one whose distance to the goal fell more wins."""
+    return labels_from_scores(goal_distance_gains(pairs))
+
+
 class PreferenceSource(ABC):
     """Gives preference labels to trajectory pairs (a scripted labeller, an oracle, people).
 

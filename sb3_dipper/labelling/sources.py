@@ -16,7 +16,7 @@ import copy
 import math
 import warnings
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
@@ -27,6 +27,7 @@ from sb3_dipper.common.preferences import (
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    progress_gain_labels,
     progress_labels,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
@@ -37,7 +38,8 @@ PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
 
 SPEC_HELP = (
     "a PreferenceSource, None (primitive-in-the-loop labels), 'primitive', 'progress' (ties broken by the distance to "
-    "the goal), 'noisy:P[:SEED]', 'people:DIRECTORY', 'mixed:DIRECTORY:FRACTION', or a dict with kind ('progress', "
+    "the goal at the end), 'progress:gain' (ties broken by how much nearer the goal each trajectory ended than it "
+    "started), 'noisy:P[:SEED]', 'people:DIRECTORY', 'mixed:DIRECTORY:FRACTION', or a dict with kind ('progress', "
     "'noisy', 'people' or 'mixed') and the source's keyword arguments"
 )
 
@@ -84,17 +86,31 @@ class NoisyLabeler(PreferenceSource):
 
 class ProgressTieBreaker(PreferenceSource):
     """The scripted (primitive-in-the-loop) answer, with its ties answered by progress: of two trajectories that reached
-    the goal equally often, the one that ended nearer to it is preferred.
+    the goal equally often, the one that ended nearer to it is preferred (``measure="end"``), or the one that came
+    nearer to it than it started by more (``measure="gain"``).
 
     Beyond the paper. Where the lower level seldom reaches the goal, nearly every primitive-in-the-loop label is a tie
     and carries nothing for the higher level to learn; the distance at the end still tells the pairs apart. The
-    distance is measured in goal coordinates, so it is an oracle of the task's geometry, not of the lower level.
+    distance is measured in goal coordinates, so it is an oracle of the task's geometry, not of the lower level. On
+    tasks whose starts and goals are drawn at random the two trajectories of a pair start apart, and the distance at
+    the end prefers the one that began nearer its goal, whatever its subgoals did; the gain compares what each
+    trajectory achieved (on a fixed task both start alike and the two measures agree).
 
     :param script: the scripted labeller (default: the algorithm's primitive-in-the-loop labeller)
+    :param measure: ``"end"`` (:func:`~sb3_dipper.common.preferences.progress_labels`) or ``"gain"``
+        (:func:`~sb3_dipper.common.preferences.progress_gain_labels`)
     """
 
-    def __init__(self, script: PreferenceSource | None = None) -> None:
+    MEASURES: ClassVar[dict[str, Callable[[TrajectoryPairs], np.ndarray]]] = {
+        "end": progress_labels,
+        "gain": progress_gain_labels,
+    }
+
+    def __init__(self, script: PreferenceSource | None = None, measure: str = "end") -> None:
+        if measure not in self.MEASURES:
+            raise ValueError(f"ProgressTieBreaker measure must be one of {sorted(self.MEASURES)}, got {measure!r}")
         self.script = script
+        self.measure = measure
 
     def label(self, pairs: TrajectoryPairs) -> np.ndarray:
         if self.script is None:
@@ -103,7 +119,7 @@ class ProgressTieBreaker(PreferenceSource):
             )
         labels = np.asarray(self.script.label(pairs), dtype=np.float32).copy()
         ties = labels == 0.5
-        labels[ties] = progress_labels(pairs.select(np.flatnonzero(ties)))
+        labels[ties] = self.MEASURES[self.measure](pairs.select(np.flatnonzero(ties)))
         return labels
 
 
@@ -410,8 +426,8 @@ def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:
 def _parse_spec(text: str) -> dict[str, Any]:
     kind, _, rest = text.partition(":")
     try:
-        if kind == "progress" and not rest:
-            return {"kind": "progress"}
+        if kind == "progress" and rest in ("", "end", "gain"):
+            return {"kind": "progress", **({"measure": rest} if rest else {})}
         if kind == "noisy":
             noise, _, seed = rest.partition(":")
             return {"kind": "noisy", "noise": float(noise), **({"seed": int(seed)} if seed else {})}
