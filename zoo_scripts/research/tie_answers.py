@@ -1,0 +1,111 @@
+"""How a trained DIPPER's tied labels are answered when the two trajectories of a pair start apart.
+
+    python zoo_scripts/research/tie_answers.py runs/f56/anchored-goalep/seed_0/dipper/FetchPush-v4_1
+    python zoo_scripts/research/tie_answers.py RUN --checkpoints --steps 6000 --pairs 4000 --csv ties.csv
+
+On a task whose starts and goals are drawn at random, the two trajectories of a preference pair begin at different
+distances from their goals. Where the primitive-in-the-loop labeller ties (neither trajectory, or both equally often,
+reached the goal), ``preference_source="progress"`` prefers the trajectory that ended nearer the goal and
+``"progress:gain"`` the one whose distance fell more; both can depend on where each began rather than on its subgoals.
+For each model the script collects ``--steps`` primitive steps as training collects them (its exploration and goal
+episodes included, no update), draws ``--pairs`` pairs with the model's own pair sampler, labels them with its
+primitive-in-the-loop labeller, and reports, for the tied pairs, how often each answer prefers the trajectory that
+began nearer its goal (0.5: independent of the start; 1: decided by it), separately for pairs that keep each
+trajectory's own goal (``own_goals``: a goal-driven contrast pair, or a pair not relabelled) and pairs that share one
+(``shared_goal``: hindsight-relabelled).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np
+import torch as th
+
+from sb3_dipper.common.preferences import TrajectoryPairs, labels_from_scores, progress_gain_labels, progress_labels
+from sb3_dipper.dipper import DIPPER
+
+# Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from configs import measure_runs, trained_run
+
+COLUMNS = ("group", "share", "tie_share", "end_prefers_nearer_start", "gain_prefers_nearer_start")
+
+
+def start_distances(pairs: TrajectoryPairs) -> np.ndarray:
+    """``(2, B)``: each trajectory's distance from its goal at its first step."""
+    first = pairs.observations
+    return np.linalg.norm(first["achieved_goal"][:, :, 0] - first["desired_goal"][:, :, 0], axis=-1)
+
+
+def tie_answers(pairs: TrajectoryPairs, script_labels: np.ndarray) -> dict[str, dict[str, float]]:
+    """Per group of pairs (``all``, ``own_goals``, ``shared_goal``): its share of the pairs, its share of ties, and how
+    often the end's and the gain's answers to its ties prefer the trajectory that began nearer its goal (NaN without
+    a tie whose trajectories began at different distances)."""
+    ties = script_labels == 0.5
+    began_nearer = labels_from_scores(-start_distances(pairs))
+    answers = {"end": progress_labels(pairs), "gain": progress_gain_labels(pairs)}
+    goals = pairs.observations["desired_goal"][:, :, 0]
+    own_goals = np.linalg.norm(goals[0] - goals[1], axis=-1) > 1e-6
+    results = {}
+    for group, members in (("all", np.ones_like(ties)), ("own_goals", own_goals), ("shared_goal", ~own_goals)):
+        counted = np.flatnonzero(members & ties & (began_nearer != 0.5))
+        results[group] = {
+            "share": float(members.mean()),
+            "tie_share": float(ties[members].mean()) if members.any() else float("nan"),
+            **{
+                f"{name}_prefers_nearer_start": float(np.mean(labels[counted] == began_nearer[counted]))
+                if counted.size
+                else float("nan")
+                for name, labels in answers.items()
+            },
+        }
+    return results
+
+
+def measure(
+    run: Path, algo: str, env_id: str, n_steps: int, n_pairs: int, model_file: Path | None = None
+) -> tuple[int, dict[str, dict[str, float]]]:
+    """Collect ``n_steps`` steps with the run's model (or ``model_file``) as training does, without updates, and
+    answer the ties of ``n_pairs`` pairs drawn from them; returns the model's primitive steps and :func:`tie_answers`."""
+    model, _ = trained_run(run, algo, env_id, seed=30_000, model_file=model_file)
+    if not isinstance(model, DIPPER):
+        raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
+    steps = model.num_timesteps
+    model.train = lambda *args, **kwargs: None  # type: ignore[method-assign]  # collect only
+    model.learn(n_steps, reset_num_timesteps=False)
+    pipeline = model.preference_pipeline
+    assert pipeline.labeler is not None
+    pairs = pipeline.sampler.sample(model.trajectory_buffer, n_pairs, np.random.default_rng(0))
+    script = getattr(pipeline.labeler, "script", None) or pipeline.labeler
+    return steps, tie_answers(pairs, np.asarray(script.label(pairs)))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/dipper/<env>_<n>) holding <env>.zip")
+    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a DIPPER entry)")
+    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
+    parser.add_argument("--steps", type=int, default=6000, help="primitive steps collected per model")
+    parser.add_argument("--pairs", type=int, default=4000, help="pairs drawn from what was collected")
+    parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
+    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
+    args = parser.parse_args()
+    if args.steps < 1 or args.pairs < 1:
+        parser.error("--steps and --pairs must be at least 1")
+    th.set_num_threads(1)
+
+    def measure_model(run: Path, algo: str, env_id: str, _: int, model_file: Path | None) -> tuple[int, dict]:
+        return measure(run, algo, env_id, args.steps, args.pairs, model_file)
+
+    args.episodes = 0  # measure_runs passes it on; this measure counts steps instead
+    measure_runs(parser, args, measure_model, "tie_answers.json", COLUMNS)
+
+
+if __name__ == "__main__":
+    main()
