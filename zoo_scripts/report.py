@@ -104,6 +104,7 @@ DIPPER_PROFILE: dict[str, Source] = {
     PNP_FIXED: Learning("dipper-goal-episodes"),
     PUSH_FIXED: Learning("dipper-goal-episodes"),
     PNP: Learning("dipper-anchored-goalep"),
+    PUSH: Learning("dipper-anchored-goalep"),
     KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
     MAZE_FIXED: Learning("dipper-goal-episodes"),
     MAZE: Learning("dipper_paper-low64"),
@@ -116,6 +117,7 @@ def final_models(case: str) -> dict[str, Source]:
         PNP_FIXED: Evaluated("planner-share-goal-episodes-profile.csv", "FetchPickAndPlaceFixed", case),
         PUSH_FIXED: Evaluated("planner-share-goal-episodes-push.csv", "FetchPushFixed", case),
         PNP: Evaluated("planner-share-anchored-goalep.csv", "/anchored-goalep/", case),
+        PUSH: Evaluated("planner-share-anchored-goalep-push.csv", "/anchored-goalep/", case),
         MAZE_FIXED: Evaluated("planner-share-goal-episodes-maze.csv", "FetchFourRoomMazeFixed", case),
     }
     # Without a planner the model as trained is its policy alone.

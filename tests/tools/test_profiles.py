@@ -108,10 +108,13 @@ def test_the_kitchen_profile_clones_twenty_dart_episodes_at_the_authors_demonstr
 
 
 def test_the_random_push_profile_clones_two_hundred_dart_episodes(tmp_path, monkeypatch):
-    """The measured random push configuration, with the fixed tasks' switches."""
+    """The measured random push configuration: the random pick-and-place's, whose goal-anchored policy acts alone at
+    evaluation (the planner steers training only)."""
     model, env, n_timesteps = dart_profile("FetchPush-v4", 200, monkeypatch, tmp_path)
     assert n_timesteps == 640_000
-    assert model.switch_kwargs["hindsight_actions"] and model.planner.mode == "subgoal"
+    assert model.switch_kwargs["goal_episode_prob"] == 0.5 and not model.switch_kwargs["hindsight_actions"]
+    assert model.planner.mode == "subgoal" and not model.planner.in_predict
+    assert model.policy.goal_anchored and model.preference_source == "progress"
     env.close()
 
 
@@ -227,12 +230,11 @@ def test_dac_discriminates_against_dippers_demonstrations_where_its_profile_take
 
 
 # Tasks where a run showed the switches beyond the paper help (BENCHMARKS.md, "the paper's tasks on a CPU"), and which.
-SWITCHES = {"nll_coef", "hindsight_actions", "truncate_at_goal"}
 MEASURED_SWITCHES = {
     "FetchPickAndPlaceFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPushFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPickAndPlace-v4": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
-    "FetchPush-v4": SWITCHES,
+    "FetchPush-v4": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchFourRoomMazeFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
 }
 
