@@ -259,13 +259,18 @@ def progress_labels(pairs: TrajectoryPairs) -> np.ndarray:
     return labels_from_scores(-final_goal_distances(pairs))
 
 
-def goal_distance_gains(pairs: TrajectoryPairs) -> np.ndarray:
-    """``(2, B)``: how much nearer the pair's goal each trajectory ended than it started (start distance minus
-    :func:`final_goal_distances`). Where the two trajectories of a pair start apart (tasks with random starts and
-    goals), the distance at the end favours the one that began nearer its goal; the gain does not."""
+def start_goal_distances(pairs: TrajectoryPairs) -> np.ndarray:
+    """``(2, B)``: each trajectory's distance from its goal at its first step (Euclidean, in goal coordinates)."""
     first = pairs.observations
-    start = np.linalg.norm(first["achieved_goal"][:, :, 0] - first["desired_goal"][:, :, 0], axis=-1)
-    return start - final_goal_distances(pairs)
+    return np.linalg.norm(first["achieved_goal"][:, :, 0] - first["desired_goal"][:, :, 0], axis=-1)
+
+
+def goal_distance_gains(pairs: TrajectoryPairs) -> np.ndarray:
+    """``(2, B)``: how much nearer the pair's goal each trajectory ended than it started
+    (:func:`start_goal_distances` minus :func:`final_goal_distances`). Where the two trajectories of a pair start apart
+    (tasks with random starts and goals), the distance at the end favours the one that began nearer its goal; the gain
+    does not."""
+    return start_goal_distances(pairs) - final_goal_distances(pairs)
 
 
 def progress_gain_labels(pairs: TrajectoryPairs) -> np.ndarray:

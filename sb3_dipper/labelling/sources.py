@@ -426,7 +426,7 @@ def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:
 def _parse_spec(text: str) -> dict[str, Any]:
     kind, _, rest = text.partition(":")
     try:
-        if kind == "progress" and rest in ("", "end", "gain"):
+        if kind == "progress" and (not rest or rest in ProgressTieBreaker.MEASURES):
             return {"kind": "progress", **({"measure": rest} if rest else {})}
         if kind == "noisy":
             noise, _, seed = rest.partition(":")

@@ -27,7 +27,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import torch as th
 
-from sb3_dipper.common.preferences import TrajectoryPairs, labels_from_scores, progress_gain_labels, progress_labels
+from sb3_dipper.common.preferences import (
+    TrajectoryPairs,
+    labels_from_scores,
+    progress_gain_labels,
+    progress_labels,
+    start_goal_distances,
+)
 from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
@@ -37,18 +43,12 @@ from configs import measure_runs, trained_run
 COLUMNS = ("group", "share", "tie_share", "end_prefers_nearer_start", "gain_prefers_nearer_start")
 
 
-def start_distances(pairs: TrajectoryPairs) -> np.ndarray:
-    """``(2, B)``: each trajectory's distance from its goal at its first step."""
-    first = pairs.observations
-    return np.linalg.norm(first["achieved_goal"][:, :, 0] - first["desired_goal"][:, :, 0], axis=-1)
-
-
 def tie_answers(pairs: TrajectoryPairs, script_labels: np.ndarray) -> dict[str, dict[str, float]]:
     """Per group of pairs (``all``, ``own_goals``, ``shared_goal``): its share of the pairs, its share of ties, and how
     often the end's and the gain's answers to its ties prefer the trajectory that began nearer its goal (NaN without
     a tie whose trajectories began at different distances)."""
     ties = script_labels == 0.5
-    began_nearer = labels_from_scores(-start_distances(pairs))
+    began_nearer = labels_from_scores(-start_goal_distances(pairs))
     answers = {"end": progress_labels(pairs), "gain": progress_gain_labels(pairs)}
     goals = pairs.observations["desired_goal"][:, :, 0]
     own_goals = np.linalg.norm(goals[0] - goals[1], axis=-1) > 1e-6
