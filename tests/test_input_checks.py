@@ -102,6 +102,8 @@ BAD_SWITCH_SETTINGS = [
     ("value_score_coef", INF, NON_NEGATIVE),
     ("goal_subgoal_prob", 1.5, PROBABILITY),
     ("goal_episode_prob", -0.1, PROBABILITY),
+    ("matched_control_prob", 1.5, PROBABILITY),
+    ("matched_control_prob", 0.5, r"pairs a policy trajectory .* set switch_kwargs\['goal_episode_prob'\] above 0"),
     ("anchor_coef", -1.0, NON_NEGATIVE),
     ("hindsight_actions", "False", "must be True or False, got 'False'"),
     ("truncate_at_goal", 1, "must be True or False, got 1"),

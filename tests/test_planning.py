@@ -650,6 +650,22 @@ def test_goal_episodes_are_whole_control_episodes_in_training_only():
     assert not np.isclose(predicted, model._subgoal_actions(observation["desired_goal"]), atol=1e-3).all(axis=1).any()
 
 
+def test_matched_control_pairs_pit_the_policy_against_the_control_from_near_starts(tmp_path):
+    logs = {}
+    for matched in (0.0, 1.0):
+        switches = dict(goal_episode_prob=0.5, matched_control_prob=matched)
+        model = tiny_model(DIPPER, short_maze(n_envs=2), switch_kwargs=switches)
+        model.set_logger(configure(str(tmp_path / str(matched)), ["csv"]))
+        model.learn(600, log_interval=1)
+        logs[matched] = pd.read_csv(tmp_path / str(matched) / "progress.csv")["train/high_new_start_gap"].dropna()
+        assert model.preference_pipeline.sampler.matched_control_prob == matched
+    driven = model.trajectory_buffer.goal_driven
+    pairs = model.preference_pipeline.sampler.sample(model.trajectory_buffer, 50, np.random.default_rng(0))
+    goal_actions = model._subgoal_actions(pairs.observations["desired_goal"][1][pairs.mask[1]])
+    np.testing.assert_allclose(pairs.actions[1][pairs.mask[1]], goal_actions, atol=1e-5)  # tau^2: the control's
+    assert driven.any() and len(logs[1.0]) > 0 and logs[1.0].mean() < logs[0.0].mean()
+
+
 def test_goal_episodes_log_their_success_apart_from_the_policys():
     model = tiny_model(DIPPER, short_maze(n_envs=3), switch_kwargs=dict(goal_episode_prob=0.5))
     model._setup_learn(10)
@@ -852,7 +868,7 @@ def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
         tmp_path / "new.zip",
         tmp_path / "old.zip",
         "switch_kwargs",
-        newer_keys=("goal_episode_prob", "contrast_env_goals", "anchor_coef"),
+        newer_keys=("goal_episode_prob", "contrast_env_goals", "anchor_coef", "matched_control_prob"),
     )
 
     with warnings.catch_warnings():

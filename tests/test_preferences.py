@@ -24,6 +24,7 @@ from sb3_dipper.common.preferences import (
     relabel_hindsight_actions,
     sample_trajectory_pairs,
     save_preference_data,
+    start_gaps,
     truncate_at_first_arrival,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
@@ -186,6 +187,45 @@ def test_without_contrast_env_goals_a_contrast_pair_takes_a_hindsight_goal_from_
     differs = np.any(kept.observations["desired_goal"] != hindsight.observations["desired_goal"], axis=(0, 2, 3))
     contrast = np.any(kept.observations["desired_goal"][0, :, 0] != kept.observations["desired_goal"][1, :, 0], axis=-1)
     assert contrast.any() and np.array_equal(differs, contrast), "only the contrast pairs' goals differ"
+
+
+def matched_buffer() -> TrajectoryBuffer:
+    """Two goal-driven trajectories (rows 0, 1) and two of the policy's (rows 2, 3), each policy trajectory starting
+    near one control: row 2 near row 1, row 3 near row 0."""
+    buffer = TrajectoryBuffer(capacity=6, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    west, east = np.array([-3.0, 0.0], np.float32), np.array([3.0, 0.0], np.float32)
+    add_trajectory(buffer, [(1, 0), (2, 0)], goal=east, goal_driven=[True, True], start=(0.0, 0.0))
+    add_trajectory(buffer, [(-3, 1), (-3, 0)], goal=west, goal_driven=[True, True], start=(-4.0, 1.0))
+    add_trajectory(buffer, [(0, 1), (0, 2)], goal=np.array([-3.0, 0.4], np.float32), start=(-4.0, 1.3))
+    add_trajectory(buffer, [(0, -1), (0, -2)], goal=east, start=(0.0, 0.4))
+    return buffer
+
+
+def test_a_matched_pair_is_a_policy_trajectory_and_the_control_that_started_nearest_it():
+    pairs = sample_trajectory_pairs(matched_buffer(), 40, 1.0, SPACE, np.random.default_rng(4), matched_control_prob=1.0)
+    starts = pairs.observations["achieved_goal"][:, :, 0]
+    from_west = starts[0, :, 0] < -2
+    assert from_west.any() and not from_west.all()
+    # tau^1 is the policy's (rows 2, 3), tau^2 the control nearest it (rows 1, 0), both with the env's goals.
+    np.testing.assert_array_equal(starts[1, from_west], [[-4.0, 1.0]] * from_west.sum())
+    np.testing.assert_array_equal(starts[1, ~from_west], [[0.0, 0.0]] * (~from_west).sum())
+    # Start gaps by hand: (0.3 in the achieved goal, 0.4 in the goal) from the west, (0.4, 0) from the east.
+    np.testing.assert_allclose(start_gaps(pairs), np.where(from_west, 0.5, 0.4), rtol=1e-6)
+
+
+def test_without_matched_pairs_the_draws_are_unchanged_and_a_buffer_without_controls_draws_at_random():
+    buffer = matched_buffer()
+    default, off = (
+        sample_trajectory_pairs(buffer, 30, 0.5, SPACE, np.random.default_rng(5), **extra)
+        for extra in ({}, {"matched_control_prob": 0.0})
+    )
+    np.testing.assert_array_equal(default.observations["achieved_goal"], off.observations["achieved_goal"])
+    np.testing.assert_array_equal(default.observations["desired_goal"], off.observations["desired_goal"])
+    no_controls = TrajectoryBuffer(capacity=4, max_length=2, observation_space=OBS_SPACE, action_dim=2)
+    add_trajectory(no_controls, [(1, 0), (2, 0)])
+    add_trajectory(no_controls, [(0, 1), (0, 2)], start=(1.0, 1.0))
+    pairs = sample_trajectory_pairs(no_controls, 30, 0.0, SPACE, np.random.default_rng(6), matched_control_prob=1.0)
+    assert len(pairs) == 30 and (start_gaps(pairs) > 0).any()
 
 
 def test_hindsight_actions_are_the_reached_subgoals_in_unit_coordinates(buffer):

@@ -72,6 +72,40 @@ def relabel_hindsight_actions(next_achieved_goals: np.ndarray, subgoal_space: Su
     return subgoal_space.to_unit(subgoal_space.project(next_achieved_goals))
 
 
+def trajectory_starts(observations: DictObs) -> np.ndarray:
+    """Where trajectories started: the achieved goal and the goal at the first step, side by side (``(..., 2 *
+    goal_dim)`` from observations ``(..., T, goal_dim)``), what matching starts in goal coordinates compares."""
+    return np.concatenate([observations["achieved_goal"][..., 0, :], observations["desired_goal"][..., 0, :]], axis=-1)
+
+
+def match_control_trajectories(
+    buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``n_pairs`` stored trajectories not driven by the goal, drawn uniformly, each with the goal-driven trajectory
+    (:attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.goal_driven`) whose start is nearest
+    (:func:`trajectory_starts`, Euclidean), as two index arrays; ``None`` when the buffer lacks either kind.
+
+    The pair then compares the policy's subgoals with the goal-driven control's from about the same start toward about
+    the same goal, where two trajectories drawn at random on a task with random starts and goals start apart.
+    """
+    stored = np.arange(len(buffer))
+    driven = buffer.goal_driven[: len(buffer)]
+    controls, own = stored[driven], stored[~driven]
+    if len(controls) == 0 or len(own) == 0:
+        return None
+    policy_rows = rng.choice(own, size=n_pairs)
+    starts = trajectory_starts({key: buffer.observations[key][:, :1] for key in ("achieved_goal", "desired_goal")})
+    gaps = np.linalg.norm(starts[policy_rows, None] - starts[None, controls], axis=-1)
+    return policy_rows, controls[gaps.argmin(axis=1)]
+
+
+def start_gaps(pairs: TrajectoryPairs) -> np.ndarray:
+    """``(B,)``: how far apart the two trajectories of each pair started (:func:`trajectory_starts`, Euclidean; with the
+    pair's goals, hindsight goals included)."""
+    starts = trajectory_starts(pairs.observations)
+    return np.linalg.norm(starts[0] - starts[1], axis=-1)
+
+
 def sample_trajectory_pairs(
     buffer: TrajectoryBuffer,
     n_pairs: int,
@@ -79,14 +113,22 @@ def sample_trajectory_pairs(
     subgoal_space: SubgoalSpace,
     rng: np.random.Generator,
     contrast_env_goals: bool = True,
+    matched_control_prob: float = 0.0,
 ) -> TrajectoryPairs:
     """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them, except,
     with ``contrast_env_goals``, a pair of a goal-driven trajectory
     (:attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.goal_driven`) and another, which compares the control with
-    the other driver on the env's own goals (the draws are the same either way)."""
+    the other driver on the env's own goals (the draws are the same either way). With ``matched_control_prob`` a pair
+    is instead a trajectory of the policy's (tau^1) and the goal-driven one that started nearest it (tau^2,
+    :func:`match_control_trajectories`); at 0 no draw is made for it, so the pairs are those drawn without it."""
     if len(buffer) < 2:
         raise ValueError("Preference pairs need at least two finished higher-level trajectories")
     indices = rng.integers(len(buffer), size=(2, n_pairs))
+    if matched_control_prob > 0.0:
+        matched = rng.random(n_pairs) < matched_control_prob
+        matches = match_control_trajectories(buffer, int(matched.sum()), rng)
+        if matches is not None:
+            indices[:, matched] = np.stack(matches)
     observations = {key: value[indices].copy() for key, value in buffer.observations.items()}
     next_achieved_goals = buffer.next_achieved_goals[indices]
     mask = np.stack([buffer.mask(indices[0]), buffer.mask(indices[1])])
@@ -198,6 +240,8 @@ class TrajectoryPairSampler(PairSampler):
     :param goal_reached: end each pair when the first of its trajectories reaches the goal, as this tells (``None``:
         whole trajectories)
     :param contrast_env_goals: a pair of a goal-driven trajectory and another keeps the env's goals
+    :param matched_control_prob: probability that a pair is a trajectory of the policy's and the goal-driven one that
+        started nearest it
     """
 
     min_trajectories = 2
@@ -208,15 +252,23 @@ class TrajectoryPairSampler(PairSampler):
         subgoal_space: SubgoalSpace,
         goal_reached: GoalReachedFn | None = None,
         contrast_env_goals: bool = True,
+        matched_control_prob: float = 0.0,
     ) -> None:
         self.hindsight_goal_prob = hindsight_goal_prob
         self.subgoal_space = subgoal_space
         self.goal_reached = goal_reached
         self.contrast_env_goals = contrast_env_goals
+        self.matched_control_prob = matched_control_prob
 
     def sample(self, buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator) -> TrajectoryPairs:
         pairs = sample_trajectory_pairs(
-            buffer, n_pairs, self.hindsight_goal_prob, self.subgoal_space, rng, self.contrast_env_goals
+            buffer,
+            n_pairs,
+            self.hindsight_goal_prob,
+            self.subgoal_space,
+            rng,
+            self.contrast_env_goals,
+            self.matched_control_prob,
         )
         return pairs if self.goal_reached is None else truncate_at_first_arrival(pairs, self.goal_reached)
 

@@ -40,6 +40,7 @@ from sb3_dipper.common.preferences import (
     TrajectoryPairSampler,
     flat_pair_observations,
     progress_labels,
+    start_gaps,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import (
@@ -73,6 +74,7 @@ DEFAULT_SWITCH_KWARGS: dict[str, Any] = dict(
     goal_episode_prob=0.0,
     contrast_env_goals=True,
     anchor_coef=0.0,
+    matched_control_prob=0.0,
 )
 # The switches that were DIPPER's parameters before switch_kwargs (still taken as parameters, deprecated).
 LEGACY_SWITCHES = (
@@ -112,6 +114,16 @@ def checked_switch_kwargs(switch_kwargs: Mapping[str, Any]) -> dict[str, Any]:
         settings["reference"] = as_choice("switch_kwargs['reference']", settings["reference"], REFERENCE_POLICIES)
         settings["goal_subgoal_prob"] = as_float("switch_kwargs['goal_subgoal_prob']", settings["goal_subgoal_prob"], 0.0, 1.0)
         settings["goal_episode_prob"] = as_float("switch_kwargs['goal_episode_prob']", settings["goal_episode_prob"], 0.0, 1.0)
+        settings["matched_control_prob"] = as_float(
+            "switch_kwargs['matched_control_prob']", settings["matched_control_prob"], 0.0, 1.0
+        )
+        if settings["matched_control_prob"] > 0.0 and settings["goal_episode_prob"] == 0.0:
+            raise InvalidSetting(
+                "switch_kwargs['matched_control_prob']",
+                "switch_kwargs['matched_control_prob'] pairs a policy trajectory with a goal-driven one, which only "
+                "goal episodes collect: set switch_kwargs['goal_episode_prob'] above 0 (e.g. 0.5), "
+                "or leave matched_control_prob at 0",
+            )
         for key in ("hindsight_actions", "truncate_at_goal", "contrast_env_goals"):
             settings[key] = as_bool(f"switch_kwargs['{key}']", settings[key])
         settings["value_reg"] = as_choice("switch_kwargs['value_reg']", settings["value_reg"], VALUE_REGULARIZERS)
@@ -164,12 +176,15 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         ties), ``goal_episode_prob`` (probability that an env's training episode is driven by the goal as every
         subgoal, the control, so that pairs compare whole control trajectories with the policy's; 0: off),
         ``contrast_env_goals`` (whether a pair of a goal-driven trajectory and another keeps the env's goals instead of
-        a hindsight goal; default True) and ``anchor_coef`` (weight of a goal-anchored policy's squared offset from
+        a hindsight goal; default True), ``matched_control_prob`` (probability that a pair is a trajectory of the
+        policy's and the goal-driven trajectory whose start, its achieved goal and goal at the first option, is
+        nearest, so that a label compares the policy's subgoals with the control's from about the same start; needs
+        ``goal_episode_prob`` above 0; 0: off) and ``anchor_coef`` (weight of a goal-anchored policy's squared offset from
         the goal's action added to the loss, a leash that keeps its subgoals at the goal where the preferences do not
         pull them off; needs ``policy_kwargs`` ``goal_anchored=True``; 0: off), for example
         ``dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True)``
         (:data:`DEFAULT_SWITCH_KWARGS`); ``model.switch_kwargs`` holds them all, and a key changed there acts from the
-        next :meth:`learn`. Each key but the last three is also taken as a parameter of its own, deprecated
+        next :meth:`learn`. Each key but the last four is also taken as a parameter of its own, deprecated
     :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
         :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
         ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
@@ -386,6 +401,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.switch_kwargs = checked_switch_kwargs(self.switch_kwargs)
         self._pair_sampler.goal_reached = self._goal_reached if self.switch_kwargs["truncate_at_goal"] else None
         self._pair_sampler.contrast_env_goals = self.switch_kwargs["contrast_env_goals"]
+        self._pair_sampler.matched_control_prob = self.switch_kwargs["matched_control_prob"]
         if self.switch_kwargs["anchor_coef"] > 0.0 and not self.policy.goal_anchored:
             raise ValueError(
                 "switch_kwargs['anchor_coef'] pulls a goal-anchored policy's subgoals toward the goal: set policy_kwargs "
@@ -640,13 +656,15 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
 
     def _record_label_diagnostics(self, pairs: TrajectoryPairs) -> None:
         """What the new labels carry, and how the policy does on pairs it has not trained on yet (logged as means over
-        the options between two log dumps): the share of ties, the agreement with an oracle of the true progress
+        the options between two log dumps): the share of ties, how far apart the two trajectories of a pair started
+        (:func:`~sb3_dipper.common.preferences.start_gaps`), the agreement with an oracle of the true progress
         (:func:`~sb3_dipper.common.preferences.progress_labels`), the DPO accuracy, and the mean per-step
         log-likelihood of the preferred and the rejected trajectories (both falling is likelihood displacement)."""
         labelled = pairs.select(np.flatnonzero(~np.isnan(pairs.labels)))
         if len(labelled) == 0:
             return
         self.logger.record_mean("train/high_new_tie_share", float(np.mean(labelled.labels == 0.5)))
+        self.logger.record_mean("train/high_new_start_gap", float(np.mean(start_gaps(labelled))))
         agreement = float(np.mean(labelled.labels == progress_labels(labelled)))
         self.logger.record_mean("train/high_label_progress_agreement", agreement)
         with th.no_grad():
