@@ -2,12 +2,15 @@
 run folders, as a table, a summary and a figure."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
 from zoo_scripts.research import higher_level_diagnostics as diagnostics
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "docs" / "benchmarks"
 
 ENV_ID = "MazeA-v0"
 STEPS_KEY = "time/total_timesteps"
@@ -146,6 +149,21 @@ def test_a_csv_lacking_columns_is_refused_naming_it(tmp_path, capsys):
     csv.write_text("env,config,seed,timesteps,success\nMazeA-v0,a,0,100,1.0\n")
     err = refusal(["--csv-in", str(csv)], capsys)
     assert f"--csv-in {csv} lacks the columns ['tie_share'," in err
+
+
+def test_a_csv_written_before_a_diagnostic_was_added_reads_it_as_never_logged(tmp_path):
+    run = write_run(tmp_path / f"{ENV_ID}_1")
+    table_of(["--runs", f"a={run}"], tmp_path)
+    old = tmp_path / "old.csv"
+    pd.read_csv(tmp_path / "out.csv").drop(columns=list(diagnostics.ADDED_LATER)).to_csv(old, index=False)
+    table = diagnostics.read_table(old)
+    assert table[list(diagnostics.ADDED_LATER)].isna().all(axis=None) and len(table) > 0
+
+
+@pytest.mark.parametrize("path", sorted(BENCHMARKS.glob("higher-level-diagnostics-*.csv")), ids=lambda path: path.name)
+def test_every_committed_table_reads_back(path):
+    table = diagnostics.read_table(path)
+    assert len(table) > 0 and table["success"].notna().all()
 
 
 def test_the_same_seed_from_two_sources_is_refused(tmp_path, capsys):

@@ -80,7 +80,10 @@ DIAGNOSTICS = (
     Diagnostic("planned_share", ("rollout/planned_share",), "subgoals the planner proposed", SHARE),
     Diagnostic("goal_episode_success", ("rollout/goal_episode_success",), "training success, goal-driven episodes", SHARE),
     Diagnostic("policy_episode_success", ("rollout/policy_episode_success",), "training success, policy's episodes", SHARE),
+    Diagnostic("new_start_gap", ("train/high_new_start_gap",), "how far apart new pairs started"),
 )
+# Diagnostics added after tables were committed: a table written before lacks their columns, read as never logged.
+ADDED_LATER = ("goal_episode_success", "policy_episode_success", "new_start_gap")
 KEY_COLUMNS = ("env", "config", "seed", "timesteps")
 COLUMNS = (*KEY_COLUMNS, "success", *(diagnostic.column for diagnostic in DIAGNOSTICS))
 # The zoo's run folder: <env_id>_<n>, with rl-zoo3's --uuid a uuid4 after it.
@@ -217,6 +220,8 @@ def as_table(rows: Sequence[dict[str, object]]) -> pd.DataFrame:
 def read_table(path: Path) -> pd.DataFrame:
     """A table this tool wrote with ``--csv``.
 
+    A diagnostic of :data:`ADDED_LATER` that a table written before it lacks is empty, as a diagnostic never logged.
+
     :raises ValueError: the file is missing, empty, lacks a column or holds a value that is no number (names it)
     """
     try:
@@ -224,6 +229,9 @@ def read_table(path: Path) -> pd.DataFrame:
         table = pd.read_csv(path, dtype={"env": str, "config": str}, keep_default_na=False, na_values=[""])
     except (OSError, pd.errors.EmptyDataError, pd.errors.ParserError) as error:
         raise ValueError(f"--csv-in {path}: not a readable CSV ({error})") from error
+    for column in ADDED_LATER:
+        if column not in table.columns:
+            table[column] = np.nan
     missing = [column for column in COLUMNS if column not in table.columns]
     if missing:
         raise ValueError(
