@@ -193,6 +193,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP, "paper's DIPPER", "planner-share-pnp-random-baselines.csv", "/dipper_paper/"),
     (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
+    (MAZE_FIXED, "HAC", "planner-share-maze-baselines.csv", "/hac/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
