@@ -28,13 +28,16 @@ def test_tie_answers_say_how_often_each_answer_prefers_the_trajectory_that_began
     pairs = pairs_of(buffer, [0, 0, 1], [1, 2, 0])
     # Every pair is a tie; each time trajectory 0 began nearer and ended nearer, the other gained more.
     results = tie_answers(pairs, np.full(3, 0.5, np.float32))
+    # Start gaps by hand: 0 and 1 start 5 apart with one goal; 0 and 2 also 1 apart across and their goals 1 apart.
     assert results["all"] == {
         "share": 1.0,
         "tie_share": 1.0,
+        "start_gap": pytest.approx((10 + 27**0.5) / 3),
         "end_prefers_nearer_start": 1.0,
         "gain_prefers_nearer_start": 0.0,
     }
     assert results["own_goals"]["share"] == 1 / 3 and results["shared_goal"]["share"] == 2 / 3
+    assert results["own_goals"]["start_gap"] == pytest.approx(27**0.5) and results["shared_goal"]["start_gap"] == 5.0
     # A label the script decides is no tie; a group without a counted tie answers NaN.
     results = tie_answers(pairs, np.array([1.0, 0.5, 0.0], np.float32))
     assert results["own_goals"]["tie_share"] == 1.0 and results["shared_goal"]["tie_share"] == 0.0
@@ -60,3 +63,11 @@ def test_the_script_collects_without_training_and_writes_each_models_answers(tmp
     with pytest.raises(SystemExit) as exit_info:
         tie_answers_script.main()
     assert exit_info.value.code == 2 and "--steps and --pairs must be at least 1" in capsys.readouterr().err
+    # The pairs drawn with another matched_control_prob than the model's: each a policy trajectory and a control.
+    monkeypatch.setattr(sys, "argv", [*arguments[:6], "--matched-control-prob", "1"])
+    tie_answers_script.main()
+    assert np.isfinite(json.loads((run / "tie_answers.json").read_text())["all"]["start_gap"])
+    monkeypatch.setattr(sys, "argv", [*arguments[:2], "--matched-control-prob", "1.5"])
+    with pytest.raises(SystemExit):
+        tie_answers_script.main()
+    assert "--matched-control-prob must be in [0, 1], got 1.5" in capsys.readouterr().err
