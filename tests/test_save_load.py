@@ -155,10 +155,18 @@ def test_same_seed_same_first_thousand_steps(model_class):
 
 
 # What the ``dipper`` profiles of the paper's tasks turn on beyond the paper: progress labels, goal episodes, executed
-# subgoals, a planner steering training only, a goal-anchored policy with a floor on its log-std, the anchor's leash.
+# subgoals, a planner steering training only, a goal-anchored policy with a floor on its log-std, the anchor's leash;
+# and pairs matched to the control (a candidate), whose draws come from the same seeded stream.
 PROFILE_SETTINGS = dict(
     preference_source="progress",
-    switch_kwargs=dict(nll_coef=1.0, hindsight_actions=False, truncate_at_goal=True, goal_episode_prob=0.5, anchor_coef=0.1),
+    switch_kwargs=dict(
+        nll_coef=1.0,
+        hindsight_actions=False,
+        truncate_at_goal=True,
+        goal_episode_prob=0.5,
+        anchor_coef=0.1,
+        matched_control_prob=0.5,
+    ),
     planner_kwargs=dict(mode="subgoal", lookahead=2, in_predict=False),
     policy_kwargs=dict(net_arch=[16], acting_tau=0.05, log_std_min=-2.0, goal_anchored=True),
 )
@@ -184,6 +192,7 @@ def test_dippers_profile_settings_give_the_same_run_and_resume_from_a_checkpoint
     model.save_replay_buffer(tmp_path / "buffer.pkl")
     loaded = DIPPER.load(tmp_path / "model")
     assert loaded.switch_kwargs == model.switch_kwargs and not loaded.planner.in_predict
+    assert loaded.preference_pipeline.sampler.matched_control_prob == 0.5
     np.testing.assert_array_equal(rollout_actions(model, short_maze(seed=4)), rollout_actions(loaded, short_maze(seed=4)))
     loaded.set_env(short_maze(n_envs=2, seed=3))
     loaded.load_replay_buffer(tmp_path / "buffer.pkl")
