@@ -194,6 +194,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
     (MAZE_FIXED, "HAC", "planner-share-maze-baselines.csv", "/hac/"),
+    (MAZE_FIXED, "SAGA", "planner-share-maze-baselines.csv", "/saga/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
