@@ -94,7 +94,7 @@ def match_control_trajectories(
     if len(controls) == 0 or len(own) == 0:
         return None
     policy_rows = rng.choice(own, size=n_pairs)
-    starts = trajectory_starts({key: buffer.observations[key][:, :1] for key in ("achieved_goal", "desired_goal")})
+    starts = trajectory_starts({key: buffer.observations[key][: len(buffer)] for key in ("achieved_goal", "desired_goal")})
     gaps = np.linalg.norm(starts[policy_rows, None] - starts[None, controls], axis=-1)
     return policy_rows, controls[gaps.argmin(axis=1)]
 
