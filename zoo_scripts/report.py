@@ -195,6 +195,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
     (MAZE_FIXED, "HAC", "planner-share-maze-baselines.csv", "/hac/"),
     (MAZE_FIXED, "SAGA", "planner-share-maze-baselines.csv", "/saga/"),
+    (MAZE_FIXED, "PIPER", "planner-share-maze-baselines.csv", "/piper/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
