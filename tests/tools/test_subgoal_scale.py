@@ -1,0 +1,93 @@
+"""zoo_scripts/research/subgoal_scale.py: a trained model's subgoals moved part of the way back to the goal."""
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_dipper import DIPPER
+from zoo_scripts.configs import evaluate
+from zoo_scripts.research.subgoal_scale import main, move_proposals
+
+SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "research" / "subgoal_scale.py"
+
+# The fixed pick-and-place's goal is the same in every episode, so a constant proposal lies at one distance from it.
+ENV_ID = "FetchPickAndPlaceFixed-v0"
+
+
+def tiny_pick_and_place_model() -> DIPPER:
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs=dict(max_episode_steps=49))
+    return DIPPER(
+        "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
+        n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
+        low_policy_kwargs=dict(net_arch=[16]), policy_kwargs=dict(net_arch=[16]),
+    )  # fmt: skip
+
+
+def evaluate_proposing(model: DIPPER, proposal: np.ndarray, scale: float, rng=None) -> dict[str, float]:
+    """One episode with the higher level proposing ``proposal`` at every decision, moved by ``move_proposals``."""
+    model._high_level_actions = lambda _observation, _deterministic: proposal.copy()
+    move_proposals(model, scale, rng)
+    return evaluate(model, model.get_env(), 1)  # it restores the model's own higher level when it ends
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.25, 0.5])
+def test_a_scale_moves_every_subgoal_that_fraction_of_the_way_from_the_goal(scale):
+    model = tiny_pick_and_place_model()
+    proposal = np.array([[0.9, -0.8, 0.7]], dtype=np.float32)  # near a corner of the subgoal box, far from the goal
+    as_proposed = evaluate_proposing(model, proposal, 1.0)
+    scaled = evaluate_proposing(model, proposal, scale)
+    assert as_proposed["subgoal_to_goal"] > 0.2
+    assert scaled["subgoal_to_goal"] == pytest.approx(scale * as_proposed["subgoal_to_goal"], rel=1e-4)
+    if scale == 0.0:
+        assert scaled["success"] == evaluate(model, model.get_env(), 1, goal_as_subgoal=True)["success"]
+
+
+def test_a_random_direction_keeps_the_distance_from_the_goal_and_changes_the_subgoal():
+    model = tiny_pick_and_place_model()
+    proposal = model._subgoal_actions(model.get_env().reset()["desired_goal"]) + np.float32(0.05)  # near the goal
+    as_proposed = evaluate_proposing(model, proposal, 0.5)
+    turned = evaluate_proposing(model, proposal, 0.5, np.random.default_rng(0))
+    assert turned["subgoal_to_goal"] == pytest.approx(as_proposed["subgoal_to_goal"], rel=1e-4)
+    assert turned["subgoal_to_achieved"] != pytest.approx(as_proposed["subgoal_to_achieved"], rel=1e-3)
+
+
+def test_an_offset_is_split_into_its_part_beyond_the_goal_and_its_part_beside_the_way():
+    model = tiny_pick_and_place_model()
+    space = model.subgoal_space
+
+    def past_the_goal(observation, _deterministic):  # 3 cm beyond the goal, on the line from the object through it
+        goal = space.to_world(model._subgoal_actions(observation["desired_goal"]))
+        way = goal - space.to_world(model._subgoal_actions(observation["achieved_goal"], "achieved_goal"))
+        return space.to_unit(goal + 0.03 * way / np.linalg.norm(way, axis=-1, keepdims=True))
+
+    model._high_level_actions = past_the_goal
+    offsets = move_proposals(model, 0.5)
+    evaluate(model, model.get_env(), 1)
+    np.testing.assert_allclose(offsets["beyond_goal"], 0.015, atol=1e-5)
+    np.testing.assert_allclose(offsets["beside_way"], 0.0, atol=1e-5)
+    assert len(offsets["beyond_goal"]) == 49 // 7
+
+
+def test_the_script_writes_one_row_per_case_and_refuses_a_scale_beyond_the_subgoal(tmp_path, monkeypatch, capsys):
+    run = tmp_path / "dipper" / f"{ENV_ID}_1"
+    run.mkdir(parents=True)
+    tiny_pick_and_place_model().save(run / f"{ENV_ID}.zip")
+    command = [sys.executable, str(SCRIPT), str(run), "--episodes", "1", "--csv", str(tmp_path / "s.csv")]
+    done = subprocess.run([*command, "--scales", "1", "--random"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    with open(tmp_path / "s.csv") as file:
+        rows = {row["subgoals"]: row for row in csv.DictReader(file)}
+    assert list(rows) == ["goal", "policy 1", "random 1"]
+    assert float(rows["goal"]["subgoal_to_goal"]) == pytest.approx(0.0, abs=1e-4)
+    assert float(rows["policy 1"]["subgoal_to_goal"]) > 0.0
+    assert set(json.loads((run / "subgoal_scale.json").read_text())) == set(rows)
+    monkeypatch.setattr(sys, "argv", [*command[1:], "--scales", "1.5"])
+    with pytest.raises(SystemExit) as refused:
+        main()
+    assert refused.value.code == 2 and "--scales [1.5]" in capsys.readouterr().err
