@@ -30,10 +30,12 @@ def tiny_pick_and_place_model() -> DIPPER:
 
 
 def evaluate_proposing(model: DIPPER, proposal: np.ndarray, scale: float, rng=None) -> dict[str, float]:
-    """One episode with the higher level proposing ``proposal`` at every decision, moved by ``move_proposals``."""
+    """One episode with the higher level proposing ``proposal`` at every decision, moved by ``move_proposals``; with
+    the length of the mean offset from the goal as ``offset_bias``."""
     model._high_level_actions = lambda _observation, _deterministic: proposal.copy()
-    move_proposals(model, scale, rng)
-    return evaluate(model, model.get_env(), 1)  # it restores the model's own higher level when it ends
+    offsets = move_proposals(model, scale, rng)
+    result = evaluate(model, model.get_env(), 1)  # it restores the model's own higher level when it ends
+    return {**result, "offset_bias": float(np.linalg.norm(np.mean(offsets["offset"], axis=0)))}
 
 
 @pytest.mark.parametrize("scale", [0.0, 0.25, 0.5])
@@ -44,6 +46,8 @@ def test_a_scale_moves_every_subgoal_that_fraction_of_the_way_from_the_goal(scal
     scaled = evaluate_proposing(model, proposal, scale)
     assert as_proposed["subgoal_to_goal"] > 0.2
     assert scaled["subgoal_to_goal"] == pytest.approx(scale * as_proposed["subgoal_to_goal"], rel=1e-4)
+    # The same proposal and the same goal at every decision: every offset alike, their mean as long as each.
+    assert scaled["offset_bias"] == pytest.approx(scaled["subgoal_to_goal"], rel=1e-4, abs=1e-6)
     if scale == 0.0:
         assert scaled["success"] == evaluate(model, model.get_env(), 1, goal_as_subgoal=True)["success"]
 
@@ -55,6 +59,7 @@ def test_a_random_direction_keeps_the_distance_from_the_goal_and_changes_the_sub
     turned = evaluate_proposing(model, proposal, 0.5, np.random.default_rng(0))
     assert turned["subgoal_to_goal"] == pytest.approx(as_proposed["subgoal_to_goal"], rel=1e-4)
     assert turned["subgoal_to_achieved"] != pytest.approx(as_proposed["subgoal_to_achieved"], rel=1e-3)
+    assert turned["offset_bias"] < 0.5 * as_proposed["offset_bias"]  # turned apart at every decision
 
 
 def test_an_offset_is_split_into_its_part_beyond_the_goal_and_its_part_beside_the_way():

@@ -5,20 +5,21 @@ higher policy decides moved part of the way back to the goal, or turned in a ran
     python zoo_scripts/research/subgoal_scale.py runs/*/seed_*/dipper/FetchPush-v4_1 --scales 0.5 1 --random \
         --csv scale.csv
 
-Where DIPPER's own policy acting scores below its lower level driven by the goal, its subgoals cost success. This
-script says whether they cost it by their direction or by their mere distance from the goal. It evaluates the model
+Where DIPPER's own policy acting scores below its lower level driven by the goal, its subgoals cost success. This script
+says whether they cost it by their direction or by their mere distance from the goal. It evaluates the model
 (deterministic episodes, the same starts in every case) with the goal as every subgoal (case ``goal``) and, for every
-scale ``s`` of ``--scales``, with each subgoal moved to ``g + s * (subgoal - g)``, ``g`` the env's goal (case
-``policy <s>``; ``policy 1`` is the policy alone); with ``--random``, also with the same offset from the goal turned in
-a uniformly random direction (case ``random <s>``: as far from the goal, in no learnt direction). If the policy's
-success falls steadily from the goal's as the scale grows, every step away from the goal costs; if the random
-directions cost as much, the policy's direction carries nothing the lower level can use, and if they cost more, it
-carries something. A subgoal planner, where the model has one, is off: the subject is the policy's own proposals. For
-each case the script prints the episode success, how far the subgoals lie from the goal and from the achieved goal when
-deciding (the object, on the Fetch object tasks), and their offset from the goal along the way still to go, from the
-achieved goal to the goal (``beyond_goal``: positive past the goal, negative short of it), and across that way
-(``beside_way``; all in world units); it writes them as ``subgoal_scale.json`` in the zoo run folder; with ``--csv``,
-one row per model and case; with ``--checkpoints``, every checkpoint the run kept too.
+scale ``s`` of ``--scales``, with each subgoal moved to ``g + s * (subgoal - g)``, ``g`` the env's goal (case ``policy
+<s>``; ``policy 1`` is the policy alone); with ``--random``, also with the same offset from the goal turned in a
+uniformly random direction (case ``random <s>``: as far from the goal, in no learnt direction). If the policy's success
+falls steadily from the goal's as the scale grows, every step away from the goal costs; if the random directions cost as
+much, the policy's direction carries nothing the lower level can use, and if they cost more, it carries something. A
+subgoal planner, where the model has one, is off: the subject is the policy's own proposals. For each case the script
+prints the episode success, how far the subgoals lie from the goal and from the achieved goal when deciding (the object,
+on the Fetch object tasks), and their offset from the goal along the way still to go, from the achieved goal to the goal
+(``beyond_goal``: positive past the goal, negative short of it), across that way (``beside_way``), and the length of
+their mean offset from the goal (``offset_bias``: about ``subgoal_to_goal`` when every subgoal is moved alike, whatever
+the state, near 0 when the offsets cancel; all in world units); it writes them as ``subgoal_scale.json`` in the zoo run
+folder; with ``--csv``, one row per model and case; with ``--checkpoints``, every checkpoint the run kept too.
 """
 
 from __future__ import annotations
@@ -46,17 +47,15 @@ DEFAULT_SCALES = (0.25, 0.5, 0.75, 1.0)
 EVALUATION_SEED = 20_000
 
 
-def move_proposals(
-    model: HierarchicalAlgorithm, scale: float, rng: np.random.Generator | None = None
-) -> dict[str, list[float]]:
+def move_proposals(model: HierarchicalAlgorithm, scale: float, rng: np.random.Generator | None = None) -> dict[str, list]:
     """Every subgoal ``model`` decides from now on moved to ``goal + scale * (subgoal - goal)`` (in world units), and
     with ``rng`` turned in a uniformly random direction at the same distance from the goal. Returns the lists it fills
-    as the model decides: each final subgoal's offset from the goal along the way still to go, from the achieved goal
-    to the goal (``beyond_goal``: positive past the goal, negative short of it), and across it (``beside_way``), in
-    world units."""
+    as the model decides: each final subgoal's offset from the goal (``offset``, a vector), its part along the way still
+    to go, from the achieved goal to the goal (``beyond_goal``: positive past the goal, negative short of it), and its
+    length across that way (``beside_way``), in world units."""
     assert model.subgoal_space is not None
     space, decide = model.subgoal_space, model._high_level_actions
-    offsets_seen: dict[str, list[float]] = {"beyond_goal": [], "beside_way": []}
+    offsets_seen: dict[str, list] = {"offset": [], "beyond_goal": [], "beside_way": []}
 
     def moved(observation: dict[str, np.ndarray], deterministic: bool) -> np.ndarray:
         goals = space.to_world(model._subgoal_actions(observation["desired_goal"]))
@@ -70,6 +69,7 @@ def move_proposals(
         way /= np.maximum(np.linalg.norm(way, axis=-1, keepdims=True), 1e-8)
         final_offsets = subgoals - goals
         along = np.sum(final_offsets * way, axis=-1)
+        offsets_seen["offset"] += list(final_offsets)
         offsets_seen["beyond_goal"] += along.tolist()
         offsets_seen["beside_way"] += np.linalg.norm(final_offsets - along[:, None] * way, axis=-1).tolist()
         return space.to_unit(subgoals)
@@ -114,7 +114,11 @@ def measure(
         steps = model.num_timesteps
         offsets = move_proposals(model, scale, np.random.default_rng(0) if random_direction else None)
         results[name] = evaluate(model, env, n_episodes)
-        results[name].update({key: float(np.mean(values)) for key, values in offsets.items()})
+        results[name].update(
+            beyond_goal=float(np.mean(offsets["beyond_goal"])),
+            beside_way=float(np.mean(offsets["beside_way"])),
+            offset_bias=float(np.linalg.norm(np.mean(offsets["offset"], axis=0))),
+        )
         env.close()
     return steps, results
 
@@ -135,7 +139,7 @@ def main() -> None:
     outside = [scale for scale in args.scales if not 0.0 <= scale <= 1.0]
     if outside:
         parser.error(f"--scales {outside}: each scale is a fraction of the way from the goal to the subgoal, in [0, 1]")
-    columns = ("subgoals", "success", "subgoal_to_goal", "subgoal_to_achieved", "beyond_goal", "beside_way")
+    columns = ("subgoals", "success", "subgoal_to_goal", "subgoal_to_achieved", "beyond_goal", "beside_way", "offset_bias")
     measure_scaled = functools.partial(measure, scales=tuple(args.scales), random_directions=args.random)
     measure_runs(parser, args, measure_scaled, "subgoal_scale.json", columns)
 
