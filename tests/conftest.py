@@ -84,6 +84,16 @@ def short_maze(n_envs: int = 1, seed: int = 0, **kwargs):
     return make_vec_env("sb3_dipper:PointMazeFourRooms-v0", n_envs=n_envs, seed=seed, env_kwargs=SHORT_EPISODES, **kwargs)
 
 
+def tiny_pick_and_place_model(env_id: str = "FetchPickAndPlaceFixed-v0") -> DIPPER:
+    """A test-sized DIPPER on a Fetch pick-and-place with the zoo entries' episodes: 7 options of 7 steps."""
+    env = make_vec_env(env_id, n_envs=1, seed=0, env_kwargs=dict(max_episode_steps=49))
+    return DIPPER(
+        "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
+        n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
+        low_policy_kwargs=dict(net_arch=[16]), policy_kwargs=dict(net_arch=[16]),
+    )  # fmt: skip
+
+
 @pytest.fixture
 def maze_env():
     env = short_maze()

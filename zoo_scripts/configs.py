@@ -55,6 +55,27 @@ __all__ = [
 ]
 
 
+def measurement_parser(
+    description: str, episodes: int | None, algo: str | None = "dipper", algo_help: str = "a hierarchical entry"
+) -> argparse.ArgumentParser:
+    """The command line every tool of :func:`measure_runs` shares: the zoo run folders, ``--algo``, ``--env``,
+    ``--episodes`` (with its default; none where ``episodes`` is ``None``), ``--csv`` and ``--checkpoints``.
+
+    :param description: the tool's docstring, shown by ``--help``
+    :param algo: the zoo name ``--algo`` defaults to (``None``: it must be given)
+    :param algo_help: what ``--algo`` names, in the help
+    """
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/<algo>/<env>_<n>) holding <env>.zip")
+    parser.add_argument("--algo", default=algo, required=algo is None, help=f"zoo name of the models' algorithm ({algo_help})")
+    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
+    if episodes is not None:
+        parser.add_argument("--episodes", type=int, default=episodes)
+    parser.add_argument("--csv", type=Path, help="also write every model's results to this CSV")
+    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
+    return parser
+
+
 def measure_runs(
     parser: argparse.ArgumentParser,
     args: argparse.Namespace,

@@ -15,23 +15,13 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_dipper import DIPPER
 from sb3_dipper.envs.demos import default_demonstrations
 from sb3_dipper.envs.fetch import FIXED_OBJECT_XY, FIXED_PICK_AND_PLACE_GOAL, OBJECT_REST_Z
-from tests.conftest import tiny_model
+from tests.conftest import tiny_model, tiny_pick_and_place_model
 from zoo_scripts.configs import trained_run
 from zoo_scripts.research.oracle_subgoals import oracle_subgoals, run_episodes
 
 SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "research" / "oracle_subgoals.py"
 
 ENV_ID = "FetchPickAndPlaceFixed-v0"
-
-
-def tiny_pick_and_place_model() -> DIPPER:
-    # The zoo entries' episodes: 7 options of 7 steps.
-    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs=dict(max_episode_steps=49))
-    return DIPPER(
-        "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
-        n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
-        low_policy_kwargs=dict(net_arch=[16]), policy_kwargs=dict(net_arch=[16]),
-    )  # fmt: skip
 
 
 def test_the_oracle_subgoals_are_the_demonstrations_positions_at_option_ends():

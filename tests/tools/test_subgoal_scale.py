@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dipper import DIPPER
+from tests.conftest import tiny_pick_and_place_model
 from zoo_scripts.configs import evaluate
-from zoo_scripts.research.subgoal_scale import main, move_proposals
+from zoo_scripts.research.subgoal_scale import main, move_proposals, offset_summary
 
 SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "research" / "subgoal_scale.py"
 
@@ -20,22 +20,13 @@ SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "research" / "sub
 ENV_ID = "FetchPickAndPlaceFixed-v0"
 
 
-def tiny_pick_and_place_model() -> DIPPER:
-    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs=dict(max_episode_steps=49))
-    return DIPPER(
-        "MultiInputPolicy", env, option_steps=7, learning_starts=50, batch_size=16, buffer_size=500, seed=0,
-        n_preference_pairs=50, pairs_per_batch=4, trajectory_buffer_size=20,
-        low_policy_kwargs=dict(net_arch=[16]), policy_kwargs=dict(net_arch=[16]),
-    )  # fmt: skip
-
-
 def evaluate_proposing(model: DIPPER, proposal: np.ndarray, scale: float, rng=None) -> dict[str, float]:
     """One episode with the higher level proposing ``proposal`` at every decision, moved by ``move_proposals``; with
-    the length of the mean offset from the goal as ``offset_bias``."""
+    the offsets' summary."""
     model._high_level_actions = lambda _observation, _deterministic: proposal.copy()
-    offsets = move_proposals(model, scale, rng)
+    seen = move_proposals(model, scale, rng)
     result = evaluate(model, model.get_env(), 1)  # it restores the model's own higher level when it ends
-    return {**result, "offset_bias": float(np.linalg.norm(np.mean(offsets["offset"], axis=0)))}
+    return {**result, **offset_summary(np.array(seen["offset"]), np.array(seen["way"]))}
 
 
 @pytest.mark.parametrize("scale", [0.0, 0.25, 0.5])
@@ -62,7 +53,17 @@ def test_a_random_direction_keeps_the_distance_from_the_goal_and_changes_the_sub
     assert turned["offset_bias"] < 0.5 * as_proposed["offset_bias"]  # turned apart at every decision
 
 
-def test_an_offset_is_split_into_its_part_beyond_the_goal_and_its_part_beside_the_way():
+def test_the_offsets_summary_splits_them_along_and_beside_the_way_by_hand():
+    ways = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    offsets = np.array([[-0.02, 0.03, 0.0], [0.0, 0.04, 0.0]])  # 2 cm short and 3 cm beside; 4 cm past
+    summary = offset_summary(offsets, ways)
+    assert summary["short_of_goal"] == pytest.approx(0.01)  # (2 + 0) / 2 cm
+    assert summary["past_goal"] == pytest.approx(0.02)  # (0 + 4) / 2 cm
+    assert summary["beside_way"] == pytest.approx(0.015)  # (3 + 0) / 2 cm
+    assert summary["offset_bias"] == pytest.approx(np.hypot(0.01, 0.035))  # the mean offset (-1, 3.5, 0) cm
+
+
+def test_the_way_runs_from_the_achieved_goal_to_the_goal():
     model = tiny_pick_and_place_model()
     space = model.subgoal_space
 
@@ -72,11 +73,13 @@ def test_an_offset_is_split_into_its_part_beyond_the_goal_and_its_part_beside_th
         return space.to_unit(goal + 0.03 * way / np.linalg.norm(way, axis=-1, keepdims=True))
 
     model._high_level_actions = past_the_goal
-    offsets = move_proposals(model, 0.5)
+    seen = move_proposals(model, 0.5)
     evaluate(model, model.get_env(), 1)
-    np.testing.assert_allclose(offsets["beyond_goal"], 0.015, atol=1e-5)
-    np.testing.assert_allclose(offsets["beside_way"], 0.0, atol=1e-5)
-    assert len(offsets["beyond_goal"]) == 49 // 7
+    assert len(seen["offset"]) == 49 // 7
+    summary = offset_summary(np.array(seen["offset"]), np.array(seen["way"]))
+    assert summary["past_goal"] == pytest.approx(0.015, abs=1e-5)
+    assert summary["short_of_goal"] == pytest.approx(0.0, abs=1e-6)
+    assert summary["beside_way"] == pytest.approx(0.0, abs=1e-5)
 
 
 def test_the_script_writes_one_row_per_case_and_refuses_a_scale_beyond_the_subgoal(tmp_path, monkeypatch, capsys):

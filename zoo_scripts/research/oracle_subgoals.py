@@ -18,7 +18,6 @@ lower level learns and loses the demonstrated behaviour; ``--csv`` writes one ro
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from pathlib import Path
@@ -34,7 +33,7 @@ from sb3_dipper.envs.demos import default_demonstrations
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import measure_runs, trained_run
+from configs import measure_runs, measurement_parser, trained_run
 
 # ``default_demonstrations`` records the expert from ``reset(seed=0)``.
 DEMONSTRATION_SEED = 0
@@ -115,13 +114,7 @@ def measure(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/<algo>/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", required=True, help="zoo name of the models' algorithm (dipper, hier, ...)")
-    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
-    parser.add_argument("--episodes", type=int, default=1)
-    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
-    parser.add_argument("--csv", type=Path, help="also write every model's results to this CSV")
+    parser = measurement_parser(__doc__, episodes=1, algo=None, algo_help="dipper, hier, ...")
     args = parser.parse_args()
     measure_runs(parser, args, measure, "oracle_subgoals.json", ("driver", "success", "options_reached"))
 

@@ -38,7 +38,6 @@ does, the training episodes all fail alike and a preference label has nothing to
 
 from __future__ import annotations
 
-import argparse
 import functools
 import os
 import sys
@@ -56,7 +55,7 @@ from sb3_dipper.raps import RAPS
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import evaluate, measure_runs, trained_run
+from configs import evaluate, measure_runs, measurement_parser, trained_run
 
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 # Without the subgoal planner the model as trained is its policy alone.
@@ -122,13 +121,7 @@ def measure(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/dipper/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a hierarchical entry)")
-    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
-    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
+    parser = measurement_parser(__doc__, episodes=50)
     parser.add_argument("--sampled", action="store_true", help="also act as training collects: " + ", ".join(SAMPLED_CASES))
     args = parser.parse_args()
     measure_sampled = functools.partial(measure, sampled=args.sampled)

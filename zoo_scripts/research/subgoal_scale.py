@@ -15,16 +15,16 @@ falls steadily from the goal's as the scale grows, every step away from the goal
 much, the policy's direction carries nothing the lower level can use, and if they cost more, it carries something. A
 subgoal planner, where the model has one, is off: the subject is the policy's own proposals. For each case the script
 prints the episode success, how far the subgoals lie from the goal and from the achieved goal when deciding (the object,
-on the Fetch object tasks), and their offset from the goal along the way still to go, from the achieved goal to the goal
-(``beyond_goal``: positive past the goal, negative short of it), across that way (``beside_way``), and the length of
-their mean offset from the goal (``offset_bias``: about ``subgoal_to_goal`` when every subgoal is moved alike, whatever
-the state, near 0 when the offsets cancel; all in world units); it writes them as ``subgoal_scale.json`` in the zoo run
-folder; with ``--csv``, one row per model and case; with ``--checkpoints``, every checkpoint the run kept too.
+on the Fetch object tasks), how far they fall short of the goal and past it along the way still to go (from the
+achieved goal to the goal: ``short_of_goal``, ``past_goal``), how far beside that way (``beside_way``), and the length
+of their mean offset from the goal (``offset_bias``: about ``subgoal_to_goal`` when every subgoal is moved alike,
+whatever the state, near 0 when the offsets cancel; all means over the decisions, in world units); it writes them as
+``subgoal_scale.json`` in the zoo run folder; with ``--csv``, one row per model and case; with ``--checkpoints``, every
+checkpoint the run kept too.
 """
 
 from __future__ import annotations
 
-import argparse
 import functools
 import os
 import sys
@@ -40,7 +40,7 @@ from sb3_dipper.raps import RAPS
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import evaluate, measure_runs, trained_run
+from configs import evaluate, measure_runs, measurement_parser, trained_run
 
 DEFAULT_SCALES = (0.25, 0.5, 0.75, 1.0)
 # The episodes' starts are drawn from this seed, the same in every case (paired comparisons), as planner_share.py's.
@@ -50,12 +50,11 @@ EVALUATION_SEED = 20_000
 def move_proposals(model: HierarchicalAlgorithm, scale: float, rng: np.random.Generator | None = None) -> dict[str, list]:
     """Every subgoal ``model`` decides from now on moved to ``goal + scale * (subgoal - goal)`` (in world units), and
     with ``rng`` turned in a uniformly random direction at the same distance from the goal. Returns the lists it fills
-    as the model decides: each final subgoal's offset from the goal (``offset``, a vector), its part along the way still
-    to go, from the achieved goal to the goal (``beyond_goal``: positive past the goal, negative short of it), and its
-    length across that way (``beside_way``), in world units."""
+    as the model decides, for :func:`offset_summary`: each final subgoal's offset from the goal (``offset``) and the
+    unit vector of the way still to go, from the achieved goal to the goal (``way``), in world units."""
     assert model.subgoal_space is not None
     space, decide = model.subgoal_space, model._high_level_actions
-    offsets_seen: dict[str, list] = {"offset": [], "beyond_goal": [], "beside_way": []}
+    seen: dict[str, list] = {"offset": [], "way": []}
 
     def moved(observation: dict[str, np.ndarray], deterministic: bool) -> np.ndarray:
         goals = space.to_world(model._subgoal_actions(observation["desired_goal"]))
@@ -66,16 +65,26 @@ def move_proposals(model: HierarchicalAlgorithm, scale: float, rng: np.random.Ge
             offsets = directions * np.linalg.norm(offsets, axis=-1, keepdims=True)
         subgoals = space.to_world(space.to_unit(goals + scale * offsets))
         way = goals - space.to_world(model._subgoal_actions(observation["achieved_goal"], "achieved_goal"))
-        way /= np.maximum(np.linalg.norm(way, axis=-1, keepdims=True), 1e-8)
-        final_offsets = subgoals - goals
-        along = np.sum(final_offsets * way, axis=-1)
-        offsets_seen["offset"] += list(final_offsets)
-        offsets_seen["beyond_goal"] += along.tolist()
-        offsets_seen["beside_way"] += np.linalg.norm(final_offsets - along[:, None] * way, axis=-1).tolist()
+        seen["offset"] += list(subgoals - goals)
+        seen["way"] += list(way / np.maximum(np.linalg.norm(way, axis=-1, keepdims=True), 1e-8))
         return space.to_unit(subgoals)
 
     model._high_level_actions = moved  # type: ignore[method-assign]
-    return offsets_seen
+    return seen
+
+
+def offset_summary(offsets: np.ndarray, ways: np.ndarray) -> dict[str, float]:
+    """Where subgoals lie from the goal, given their ``offsets`` from it and the unit ``ways`` still to go (one row per
+    decision): the mean distance they fall short of the goal along the way (``short_of_goal``) and past it
+    (``past_goal``), the mean distance beside the way (``beside_way``) and the length of the mean offset
+    (``offset_bias``: as long as the offsets when every subgoal is moved alike, near 0 when they cancel)."""
+    along = np.sum(offsets * ways, axis=-1)
+    return {
+        "short_of_goal": float(np.mean(np.maximum(-along, 0.0))),
+        "past_goal": float(np.mean(np.maximum(along, 0.0))),
+        "beside_way": float(np.mean(np.linalg.norm(offsets - along[:, None] * ways, axis=-1))),
+        "offset_bias": float(np.linalg.norm(np.mean(offsets, axis=0))),
+    }
 
 
 def cases(scales: tuple[float, ...], random_directions: bool) -> dict[str, tuple[float, bool]]:
@@ -114,32 +123,31 @@ def measure(
         steps = model.num_timesteps
         offsets = move_proposals(model, scale, np.random.default_rng(0) if random_direction else None)
         results[name] = evaluate(model, env, n_episodes)
-        results[name].update(
-            beyond_goal=float(np.mean(offsets["beyond_goal"])),
-            beside_way=float(np.mean(offsets["beside_way"])),
-            offset_bias=float(np.linalg.norm(np.mean(offsets["offset"], axis=0))),
-        )
+        results[name].update(offset_summary(np.array(offsets["offset"]), np.array(offsets["way"])))
         env.close()
     return steps, results
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/dipper/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a hierarchical entry)")
-    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
-    parser.add_argument("--episodes", type=int, default=50)
+    parser = measurement_parser(__doc__, episodes=50)
     parser.add_argument(
         "--scales", type=float, nargs="+", default=list(DEFAULT_SCALES), help="fractions of the way from the goal (0-1)"
     )
     parser.add_argument("--random", action="store_true", help="also turn each offset in a random direction")
-    parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
-    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     args = parser.parse_args()
     outside = [scale for scale in args.scales if not 0.0 <= scale <= 1.0]
     if outside:
         parser.error(f"--scales {outside}: each scale is a fraction of the way from the goal to the subgoal, in [0, 1]")
-    columns = ("subgoals", "success", "subgoal_to_goal", "subgoal_to_achieved", "beyond_goal", "beside_way", "offset_bias")
+    columns = (
+        "subgoals",
+        "success",
+        "subgoal_to_goal",
+        "subgoal_to_achieved",
+        "short_of_goal",
+        "past_goal",
+        "beside_way",
+        "offset_bias",
+    )
     measure_scaled = functools.partial(measure, scales=tuple(args.scales), random_directions=args.random)
     measure_runs(parser, args, measure_scaled, "subgoal_scale.json", columns)
 

@@ -20,7 +20,6 @@ own (0: pairs drawn at random; 1: each a trajectory of the policy's and the goal
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from pathlib import Path
@@ -43,7 +42,7 @@ from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import measure_runs, trained_run
+from configs import measure_runs, measurement_parser, trained_run
 
 COLUMNS = ("group", "share", "tie_share", "start_gap", "end_prefers_nearer_start", "gain_prefers_nearer_start")
 
@@ -105,14 +104,9 @@ def measure(
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", type=Path, nargs="+", help="zoo run folders (logs/dipper/<env>_<n>) holding <env>.zip")
-    parser.add_argument("--algo", default="dipper", help="zoo name of the models' algorithm (a DIPPER entry)")
-    parser.add_argument("--env", help="task (default: each run folder's name without its _<n>)")
+    parser = measurement_parser(__doc__, episodes=None, algo_help="a DIPPER entry")
     parser.add_argument("--steps", type=int, default=6000, help="primitive steps collected per model")
     parser.add_argument("--pairs", type=int, default=4000, help="pairs drawn from what was collected")
-    parser.add_argument("--csv", type=Path, help="also write every run's results to this CSV")
-    parser.add_argument("--checkpoints", action="store_true", help="also measure every rl_model_<steps>_steps.zip of a run")
     parser.add_argument(
         "--matched-control-prob",
         type=float,
