@@ -196,6 +196,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (MAZE_FIXED, "HAC", "planner-share-maze-baselines.csv", "/hac/"),
     (MAZE_FIXED, "SAGA", "planner-share-maze-baselines.csv", "/saga/"),
     (MAZE_FIXED, "PIPER", "planner-share-maze-baselines.csv", "/piper/"),
+    (MAZE_FIXED, "DIPPER-No-V", "planner-share-maze-baselines.csv", "/dipper_nov/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
