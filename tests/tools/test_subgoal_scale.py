@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from sb3_dipper import DIPPER
+from sb3_dipper.common.subgoals import ElementSubgoalSpace
 from tests.conftest import tiny_pick_and_place_model
 from zoo_scripts.configs import evaluate
 from zoo_scripts.research.subgoal_scale import main, move_proposals, offset_summary
@@ -80,6 +81,15 @@ def test_the_way_runs_from_the_achieved_goal_to_the_goal():
     assert summary["past_goal"] == pytest.approx(0.015, abs=1e-5)
     assert summary["short_of_goal"] == pytest.approx(0.0, abs=1e-6)
     assert summary["beside_way"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_subgoals_that_are_task_elements_are_refused_with_the_reason():
+    model = tiny_pick_and_place_model()
+    model.subgoal_space = ElementSubgoalSpace(
+        low=np.zeros(2), high=np.ones(2), threshold=0.3, elements=((0,), (1,)), done=np.ones(2), start=np.zeros(2)
+    )
+    with pytest.raises(ValueError, match="task elements"):
+        move_proposals(model, 0.5)
 
 
 def test_the_script_writes_one_row_per_case_and_refuses_a_scale_beyond_the_subgoal(tmp_path, monkeypatch, capsys):

@@ -35,6 +35,7 @@ import numpy as np
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
+from sb3_dipper.common.subgoals import ElementSubgoalSpace
 from sb3_dipper.dipper import DIPPER
 from sb3_dipper.raps import RAPS
 
@@ -54,6 +55,11 @@ def move_proposals(model: HierarchicalAlgorithm, scale: float, rng: np.random.Ge
     unit vector of the way still to go, from the achieved goal to the goal (``way``), in world units."""
     assert model.subgoal_space is not None
     space, decide = model.subgoal_space, model._high_level_actions
+    if isinstance(space, ElementSubgoalSpace):
+        raise ValueError(
+            "the model's subgoals are task elements, each done or at rest (ElementSubgoalSpace): a subgoal part of the "
+            "way from the goal is not one of them, so its proposals cannot be moved"
+        )
     seen: dict[str, list] = {"offset": [], "way": []}
 
     def moved(observation: dict[str, np.ndarray], deterministic: bool) -> np.ndarray:
