@@ -197,6 +197,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (MAZE_FIXED, "SAGA", "planner-share-maze-baselines.csv", "/saga/"),
     (MAZE_FIXED, "PIPER", "planner-share-maze-baselines.csv", "/piper/"),
     (MAZE_FIXED, "DIPPER-No-V", "planner-share-maze-baselines.csv", "/dipper_nov/"),
+    (MAZE_FIXED, "HIER", "planner-share-maze-baselines.csv", "/hier/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
