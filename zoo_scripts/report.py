@@ -107,7 +107,7 @@ DIPPER_PROFILE: dict[str, Source] = {
     PUSH: Learning("dipper-anchored-goalep"),
     KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
     MAZE_FIXED: Learning("dipper-goal-episodes"),
-    MAZE: Learning("dipper_paper-low64"),
+    MAZE: Learning("dipper-anchored-goalep"),
 }
 
 
@@ -119,6 +119,7 @@ def final_models(case: str) -> dict[str, Source]:
         PNP: Evaluated("planner-share-anchored-goalep.csv", "/anchored-goalep/", case),
         PUSH: Evaluated("planner-share-anchored-goalep-push.csv", "/anchored-goalep/", case),
         MAZE_FIXED: Evaluated("planner-share-goal-episodes-maze.csv", "FetchFourRoomMazeFixed", case),
+        MAZE: Evaluated("planner-share-anchored-goalep-rmaze.csv", "/anchored-goalep/", case),
     }
     # Without a planner the model as trained is its policy alone.
     kitchen_case = "as_trained" if case == "policy_alone" else case

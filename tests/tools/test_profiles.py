@@ -236,6 +236,7 @@ MEASURED_SWITCHES = {
     "FetchPickAndPlace-v4": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchPush-v4": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
     "FetchFourRoomMazeFixed-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
+    "FetchFourRoomMaze-v0": {"nll_coef", "truncate_at_goal", "goal_episode_prob"},
 }
 
 
