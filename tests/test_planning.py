@@ -33,6 +33,7 @@ from sb3_dipper.dipper import DEFAULT_SWITCH_KWARGS, DIPPERPolicy
 from tests.conftest import SHORT_EPISODES, any_tiny_model, saved_in_old_form, short_maze, tiny_model
 from tests.test_preferences import OBS_SPACE, add_trajectory
 from tests.test_save_load import rollout_actions
+from zoo_scripts.configs import trained_run
 from zoo_scripts.research import planner_share
 
 REPO = Path(__file__).resolve().parent.parent
@@ -267,7 +268,7 @@ def test_planner_share_sampled_cases_sample_the_levels_as_training_collects(tmp_
     for case, (higher, lower) in expected.items():
         calls["higher"].clear()
         calls["lower"].clear()
-        model, env = planner_share.trained_run(run, "dipper", "PointMazeFourRooms-v0", seed=0)
+        model, env = trained_run(run, "dipper", "PointMazeFourRooms-v0", seed=0)
         planner_share.evaluate(model, env, 1, **planner_share.case_settings(case))
         assert set(calls["higher"]) == (set() if higher is None else {higher}), case
         assert set(calls["lower"]) == {lower}, case
@@ -283,7 +284,7 @@ def test_planner_share_measures_a_baseline_three_ways_and_refuses_a_scripted_low
     _, report = planner_share.measure(run, "hier", "PointMazeFourRooms-v0", n_episodes=1)
     assert list(report) == ["as_trained", "untrained_policy", "lower_level_alone"]
     assert all(case["planned_share"] == 0 for case in report.values())
-    model, env = planner_share.trained_run(run, "hier", "PointMazeFourRooms-v0", seed=0)
+    model, env = trained_run(run, "hier", "PointMazeFourRooms-v0", seed=0)
     observation = env.reset()
     subgoals = model.subgoal_space.to_world(model._subgoal_actions(observation["desired_goal"]))
     np.testing.assert_allclose(subgoals, model.subgoal_space.project(observation["desired_goal"]), atol=1e-5)

@@ -22,6 +22,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.dipper import DIPPER
+from sb3_dipper.raps import RAPS
 from sb3_dipper.zoo.run_config import (
     ALGORITHMS,
     EVALUATED_KEYS,
@@ -53,6 +54,25 @@ __all__ = [
     "torch_threads",
     "trained_run",
 ]
+
+
+# The research tools measure trained models on episodes from this seed on, which no demonstration saw (the
+# demonstrations are the episodes from seed 0 on); every case of a tool starts from the same episodes.
+UNSEEN_EPISODES_SEED = 20_000
+
+
+def trained_hierarchy(
+    run: Path, algo: str, env_id: str, model_file: Path | None = None
+) -> tuple[HierarchicalAlgorithm, VecEnv]:
+    """:func:`trained_run` on unseen episodes (:data:`UNSEEN_EPISODES_SEED`), refused with the reason unless the model's
+    higher level proposes subgoals to a learned lower level (RAPS's lower level is scripted; flat models have none)."""
+    model, env = trained_run(run, algo, env_id, seed=UNSEEN_EPISODES_SEED, model_file=model_file)
+    if not isinstance(model, HierarchicalAlgorithm) or isinstance(model, RAPS) or model.subgoal_space is None:
+        raise ValueError(
+            f"{run}: the model is a {type(model).__name__}, not a hierarchical model with a learned lower level "
+            "(--algo names a DIPPER, HIER, PIPER, SAGA or HAC entry)"
+        )
+    return model, env
 
 
 def measurement_parser(

@@ -46,16 +46,14 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import torch as th
-from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.dipper import DIPPER
 from sb3_dipper.dipper.policies import FlooredStdActor
-from sb3_dipper.raps import RAPS
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import evaluate, measure_runs, measurement_parser, trained_run
+from configs import evaluate, measure_runs, measurement_parser, trained_hierarchy
 
 CASES = ("as_trained", "untrained_policy", "policy_alone", "lower_level_alone")
 # Without the subgoal planner the model as trained is its policy alone.
@@ -92,24 +90,14 @@ def measure(
     """Every case of :data:`CASES` (of :data:`CASES_WITHOUT_PLANNER` for a model without the subgoal planner, and
     :data:`SAMPLED_CASES` with ``sampled``) on a fresh copy of the run's model (or of ``model_file``), and the
     primitive steps that model had trained."""
-
-    def fresh_model() -> tuple[HierarchicalAlgorithm, VecEnv]:
-        model, env = trained_run(run, algo, env_id, seed=20_000, model_file=model_file)
-        if not isinstance(model, HierarchicalAlgorithm) or isinstance(model, RAPS):
-            raise ValueError(
-                f"{run}: the model is a {type(model).__name__}, not a hierarchical model with a learned lower level "
-                "(--algo names a DIPPER, HIER, PIPER, SAGA or HAC entry)"
-            )
-        return model, env
-
     results: dict[str, dict[str, float]] = {}
-    model, env = fresh_model()
+    model, env = trained_hierarchy(run, algo, env_id, model_file)
     steps = model.num_timesteps
     has_planner = isinstance(model, DIPPER) and model.planner.mode == "subgoal"
     cases = (CASES if has_planner else CASES_WITHOUT_PLANNER) + (SAMPLED_CASES if sampled else ())
     for case in cases:
         if results:  # every case after the first on a fresh copy: a case changes the model
-            model, env = fresh_model()
+            model, env = trained_hierarchy(run, algo, env_id, model_file)
         if case == "untrained_policy":
             reset_higher_policy(model, seed=0)
         if case == "policy_alone":  # only a DIPPER with the planner has this case

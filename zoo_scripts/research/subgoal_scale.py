@@ -37,15 +37,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm
 from sb3_dipper.common.subgoals import ElementSubgoalSpace
 from sb3_dipper.dipper import DIPPER
-from sb3_dipper.raps import RAPS
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import evaluate, measure_runs, measurement_parser, trained_run
+from configs import evaluate, measure_runs, measurement_parser, trained_hierarchy
 
 DEFAULT_SCALES = (0.25, 0.5, 0.75, 1.0)
-# The episodes' starts are drawn from this seed, the same in every case (paired comparisons), as planner_share.py's.
-EVALUATION_SEED = 20_000
 
 
 def move_proposals(model: HierarchicalAlgorithm, scale: float, rng: np.random.Generator | None = None) -> dict[str, list]:
@@ -118,12 +115,7 @@ def measure(
     results: dict[str, dict[str, float]] = {}
     steps = 0
     for name, (scale, random_direction) in cases(scales, random_directions).items():
-        model, env = trained_run(run, algo, env_id, seed=EVALUATION_SEED, model_file=model_file)
-        if not isinstance(model, HierarchicalAlgorithm) or isinstance(model, RAPS) or model.subgoal_space is None:
-            raise ValueError(
-                f"{run}: the model is a {type(model).__name__}, whose higher level proposes no subgoals "
-                "(--algo names a DIPPER, HIER, PIPER, SAGA or HAC entry)"
-            )
+        model, env = trained_hierarchy(run, algo, env_id, model_file)
         if isinstance(model, DIPPER):
             model.planner.graph = None
         steps = model.num_timesteps
