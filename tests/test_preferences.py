@@ -170,7 +170,15 @@ def test_a_pair_of_the_goal_driven_control_and_another_keeps_the_envs_goals():
             assert all(own) and not shared
         else:
             assert shared  # every other pair shares a hindsight goal (hindsight_goal_prob=1)
+        # The sampler says so itself, and which side the goal drove.
+        assert pairs.shared_goal[pair] == (len(drivers) != 2)
+        assert [bool(pairs.goal_driven[side, pair]) for side in (0, 1) if own[side]] == [
+            bool(np.all(goals[side, pair] == stored[0])) for side in (0, 1) if own[side]
+        ]
     assert contrast > 20
+    kept = truncate_at_first_arrival(pairs, lambda achieved, goal: np.zeros(achieved.shape[:-1], bool)).select(np.arange(5))
+    np.testing.assert_array_equal(kept.shared_goal, pairs.shared_goal[:5])
+    np.testing.assert_array_equal(kept.goal_driven, pairs.goal_driven[:, :5])
 
 
 def test_without_contrast_env_goals_a_contrast_pair_takes_a_hindsight_goal_from_the_same_draws():

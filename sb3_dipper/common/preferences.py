@@ -31,6 +31,8 @@ from sb3_dipper.common.validation import GOAL_KEYS
 MAX_NEW_PAIRS_PER_ROUND = 256
 
 DictObs = dict[str, np.ndarray]
+# What a sampler records of how it drew pairs (:class:`TrajectoryPairs`): diagnostics, not kept in a dataset or file.
+SAMPLER_RECORDS = ("goal_driven", "shared_goal")
 GoalReachedFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
@@ -41,6 +43,10 @@ class TrajectoryPairs:
     Shapes: observations ``(2, B, T, ...)`` (``desired_goal`` holds the pair's goal), actions and reached_actions
     ``(2, B, T, d)``, next_achieved_goals ``(2, B, T, goal_dim)``, mask ``(2, B, T)``, labels ``(B,)`` (1: tau^1
     preferred, 0: tau^2 preferred, 0.5: tie).
+
+    Where the pairs were drawn from a trajectory buffer, the sampler also says how: ``goal_driven`` ``(2, B)`` (the
+    trajectory's every subgoal was the env's goal) and ``shared_goal`` ``(B,)`` (both trajectories were given one
+    hindsight goal); ``None`` where that is not known (pairs from a file or a person). Datasets do not keep them.
     """
 
     observations: DictObs
@@ -49,6 +55,8 @@ class TrajectoryPairs:
     next_achieved_goals: np.ndarray
     mask: np.ndarray
     labels: np.ndarray
+    goal_driven: np.ndarray | None = None
+    shared_goal: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -61,6 +69,8 @@ class TrajectoryPairs:
             next_achieved_goals=self.next_achieved_goals[:, indices],
             mask=self.mask[:, indices],
             labels=self.labels[indices],
+            goal_driven=None if self.goal_driven is None else self.goal_driven[:, indices],
+            shared_goal=None if self.shared_goal is None else self.shared_goal[indices],
         )
 
 
@@ -149,6 +159,8 @@ def sample_trajectory_pairs(
         next_achieved_goals=next_achieved_goals,
         mask=mask,
         labels=np.full(n_pairs, np.nan, dtype=np.float32),
+        goal_driven=buffer.goal_driven[indices],
+        shared_goal=share_goal,
     )
 
 
@@ -193,6 +205,7 @@ def sample_segment_pairs(
         next_achieved_goals=next_achieved_goals,
         mask=mask,
         labels=np.full(n_pairs, np.nan, dtype=np.float32),
+        shared_goal=share_goal,
     )
 
 
@@ -215,6 +228,8 @@ def truncate_at_first_arrival(pairs: TrajectoryPairs, goal_reached: GoalReachedF
         next_achieved_goals=pairs.next_achieved_goals,
         mask=pairs.mask & keep[None],
         labels=pairs.labels,
+        goal_driven=pairs.goal_driven,
+        shared_goal=pairs.shared_goal,
     )
 
 
@@ -434,6 +449,8 @@ class PreferenceDataset:
             self._pairs = _allocate_like(pairs, self.capacity)
         stored = self._pairs
         for field in fields(TrajectoryPairs):
+            if field.name in SAMPLER_RECORDS:
+                continue
             new_value = getattr(pairs, field.name)
             if isinstance(new_value, dict):
                 for key, array in new_value.items():

@@ -594,65 +594,63 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         """``high_gradient_steps`` DIPPER updates of the higher policy on sampled labelled pairs."""
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.actor.optimizer)
-        dpo_losses, nll_losses, accuracies, value_gaps, tie_shares, anchor_offsets = [], [], [], [], [], []
-        switches = self.switch_kwargs
-        value_term = switches["value_reg"] if self.value_reg_coef != 0.0 else None
+        terms: dict[str, list[float]] = {}
         for _ in range(self.high_gradient_steps):
             pairs = self.preferences.sample(self.pairs_per_batch, self._rng)
-            observations, actions, mask, labels = self._pair_tensors(pairs)
-
-            # Eq. 9: log pi^H of every stored higher-level action, minus lambda * (V^L - V^L_m) per step. Every term is
-            # masked, so the networks see only the real steps (on pick-and-place about a fifth of the padded (2, B, T) batch).
-            log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
-            gaps = self._value_gaps(pairs, mask) if value_term == "paper" else None
-            reference = self._reference_log_probs(observations, actions, mask)
-            dpo, logits = dipper_loss(
-                log_probs, mask, labels, self.beta, reference, gaps, self.value_reg_coef, switches["label_smoothing"]
-            )
-            loss = dpo
-
-            # Optional: the preferred side's likelihood (RPO-style), against likelihood displacement.
-            if switches["nll_coef"] > 0.0:
-                nll = preferred_nll(log_probs, mask, labels)
-                loss = loss + switches["nll_coef"] * nll
-                nll_losses.append(nll.item())
-
-            # Optional: a leash that keeps a goal-anchored policy at the goal where the preferences do not pull it off.
-            if switches["anchor_coef"] > 0.0:
-                leash = anchor_penalty(self.policy.actor.offset_from_the_anchor(observations))
-                loss = loss + switches["anchor_coef"] * leash
-                anchor_offsets.append(leash.item())
-
-            # Optional: push proposals toward subgoals the lower level values (value_reg="reparam").
-            if value_term == "reparam":
-                loss = loss - self.value_reg_coef * self._reparameterised_low_value(pairs, observations).mean()
-
+            loss, logged = self.high_level_loss(pairs)
             self.policy.actor.optimizer.zero_grad()
             loss.backward()
             self.policy.actor.optimizer.step()
             self.policy.update_averaged_actor()
-
-            dpo_losses.append(dpo.item())
-            tie_shares.append(tie_share(labels))
-            accuracy = preference_accuracy(logits.detach(), labels)
-            if accuracy is not None:
-                accuracies.append(accuracy)
-            if gaps is not None:
-                value_gaps.append((gaps * mask).sum().item() / max(mask.sum().item(), 1.0))
+            for key, value in logged.items():
+                terms.setdefault(key, []).append(value)
         self._refresh_value_snapshot()
         self._n_updates += self.high_gradient_steps
         self.logger.record("train/high_n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/high_dpo_loss", float(np.mean(dpo_losses)))
         self.logger.record("train/high_preference_pairs", len(self.preferences))
-        self.logger.record("train/high_tie_share", float(np.mean(tie_shares)))
-        if nll_losses:
-            self.logger.record("train/high_nll", float(np.mean(nll_losses)))
-        if anchor_offsets:
-            self.logger.record("train/high_anchor_offset", float(np.mean(anchor_offsets)))
-        if accuracies:
-            self.logger.record("train/high_pref_accuracy", float(np.mean(accuracies)))
-        if value_gaps:
-            self.logger.record("train/high_value_gap", float(np.mean(value_gaps)))
+        for key, values in terms.items():
+            self.logger.record(f"train/high_{key}", float(np.mean(values)))
+
+    def high_level_loss(self, pairs: TrajectoryPairs) -> tuple[th.Tensor, dict[str, float]]:
+        """The higher policy's loss on labelled ``pairs`` (one update's batch) and its terms to log (``dpo_loss``,
+        ``tie_share``, and where they apply ``nll``, ``anchor_offset``, ``pref_accuracy``, ``value_gap``)."""
+        switches = self.switch_kwargs
+        value_term = switches["value_reg"] if self.value_reg_coef != 0.0 else None
+        observations, actions, mask, labels = self._pair_tensors(pairs)
+
+        # Eq. 9: log pi^H of every stored higher-level action, minus lambda * (V^L - V^L_m) per step. Every term is
+        # masked, so the networks see only the real steps (on pick-and-place about a fifth of the padded (2, B, T) batch).
+        log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
+        gaps = self._value_gaps(pairs, mask) if value_term == "paper" else None
+        reference = self._reference_log_probs(observations, actions, mask)
+        dpo, logits = dipper_loss(
+            log_probs, mask, labels, self.beta, reference, gaps, self.value_reg_coef, switches["label_smoothing"]
+        )
+        loss = dpo
+        logged = {"dpo_loss": dpo.item(), "tie_share": tie_share(labels)}
+
+        # Optional: the preferred side's likelihood (RPO-style), against likelihood displacement.
+        if switches["nll_coef"] > 0.0:
+            nll = preferred_nll(log_probs, mask, labels)
+            loss = loss + switches["nll_coef"] * nll
+            logged["nll"] = nll.item()
+
+        # Optional: a leash that keeps a goal-anchored policy at the goal where the preferences do not pull it off.
+        if switches["anchor_coef"] > 0.0:
+            leash = anchor_penalty(self.policy.actor.offset_from_the_anchor(observations))
+            loss = loss + switches["anchor_coef"] * leash
+            logged["anchor_offset"] = leash.item()
+
+        # Optional: push proposals toward subgoals the lower level values (value_reg="reparam").
+        if value_term == "reparam":
+            loss = loss - self.value_reg_coef * self._reparameterised_low_value(pairs, observations).mean()
+
+        accuracy = preference_accuracy(logits.detach(), labels)
+        if accuracy is not None:
+            logged["pref_accuracy"] = accuracy
+        if gaps is not None:
+            logged["value_gap"] = (gaps * mask).sum().item() / max(mask.sum().item(), 1.0)
+        return loss, logged
 
     def _record_label_diagnostics(self, pairs: TrajectoryPairs) -> None:
         """What the new labels carry, and how the policy does on pairs it has not trained on yet (logged as means over

@@ -26,6 +26,7 @@ def test_tie_answers_say_how_often_each_answer_prefers_the_trajectory_that_began
     add_trajectory(buffer, [(-1.0, 0.0), (1.0, 0.0)], start=(-3.0, 0.0))
     add_trajectory(buffer, [(-1.0, 1.0), (1.0, 1.0)], goal=GOAL + np.array([0.0, 1.0], np.float32), start=(-3.0, 1.0))
     pairs = pairs_of(buffer, [0, 0, 1], [1, 2, 0])
+    pairs.shared_goal = np.array([True, False, True])  # as a sampler that relabelled pairs 0 and 2 says
     # Every pair is a tie; each time trajectory 0 began nearer and ended nearer, the other gained more.
     results = tie_answers(pairs, np.full(3, 0.5, np.float32))
     # Start gaps by hand: 0 and 1 start 5 apart with one goal; 0 and 2 also 1 apart across and their goals 1 apart.

@@ -56,8 +56,8 @@ def tie_answers(pairs: TrajectoryPairs, script_labels: np.ndarray) -> dict[str, 
     began_nearer = labels_from_scores(-start_goal_distances(pairs))
     gaps = start_gaps(pairs)
     answers = {"end": progress_labels(pairs), "gain": progress_gain_labels(pairs)}
-    goals = pairs.observations["desired_goal"][:, :, 0]
-    own_goals = np.linalg.norm(goals[0] - goals[1], axis=-1) > 1e-6
+    assert pairs.shared_goal is not None, "pairs drawn from a trajectory buffer say which share a hindsight goal"
+    own_goals = ~pairs.shared_goal
     results = {}
     for group, members in (("all", np.ones_like(ties)), ("own_goals", own_goals), ("shared_goal", ~own_goals)):
         counted = np.flatnonzero(members & ties & (began_nearer != 0.5))
