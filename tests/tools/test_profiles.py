@@ -57,6 +57,15 @@ def demo_path(entry: dict) -> str | None:
 
 
 FETCH_MANIPULATION = ("FetchPickAndPlace-v4", "FetchPickAndPlaceFixed-v0", "FetchPush-v4", "FetchPushFixed-v0")
+LONG_EPISODE_TASKS = ("FetchFourRoomMaze-v0", "FetchFourRoomMazeFixed-v0", "FrankaKitchenMicrowaveBurner-v0")
+
+
+# RAPS decides once per scripted primitive of several steps, and its file keeps SB3's rate for those decisions.
+@pytest.mark.parametrize("algo", [algo for algo in ALGOS if algo != "raps"])
+def test_maze_and_kitchen_profiles_train_at_the_authors_rate_of_ten_batches_per_episode(algo):
+    for env_id in LONG_EPISODE_TASKS:
+        entry = load_entry(algo, env_id)
+        assert (entry.get("train_freq"), entry.get("gradient_steps")) == (45, 4), (algo, env_id)
 
 
 @pytest.mark.parametrize("algo", ALGOS)
