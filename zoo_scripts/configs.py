@@ -44,12 +44,15 @@ __all__ = [
     "NAMESPACE",
     "ZOO_KEYS",
     "checkpoints",
+    "collected_dipper",
     "episode_successes",
     "evaluate",
     "load_entry",
     "make_env",
     "make_model",
     "measure_runs",
+    "pair_measurement_parser",
+    "parsed_pair_arguments",
     "run_env_kwargs",
     "torch_threads",
     "trained_run",
@@ -73,6 +76,40 @@ def trained_hierarchy(
             "(--algo names a DIPPER, HIER, PIPER, SAGA or HAC entry)"
         )
     return model, env
+
+
+def collected_dipper(
+    run: Path, algo: str, env_id: str, n_steps: int, model_file: Path | None = None, seed: int = UNSEEN_EPISODES_SEED
+) -> tuple[DIPPER, int]:
+    """The DIPPER of ``run`` (or ``model_file``) after ``n_steps`` primitive steps collected as training collects them
+    (its exploration and goal episodes included) without an update, so that its trajectory buffer holds what a
+    training round would draw pairs from, and the primitive steps it had trained; refused with the reason unless the
+    model is a DIPPER."""
+    model, _ = trained_run(run, algo, env_id, seed=seed, model_file=model_file)
+    if not isinstance(model, DIPPER):
+        raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
+    trained_steps = model.num_timesteps
+    model.train = lambda *args, **kwargs: None  # type: ignore[method-assign]  # collect only
+    model.learn(n_steps, reset_num_timesteps=False)
+    return model, trained_steps
+
+
+def pair_measurement_parser(description: str) -> argparse.ArgumentParser:
+    """:func:`measurement_parser` for the tools that measure pairs drawn from what a DIPPER collects
+    (:func:`collected_dipper`): ``--steps`` collected and ``--pairs`` drawn per model, no ``--episodes``."""
+    parser = measurement_parser(description, episodes=None, algo_help="a DIPPER entry")
+    parser.add_argument("--steps", type=int, default=6000, help="primitive steps collected per model")
+    parser.add_argument("--pairs", type=int, default=4000, help="pairs drawn from what was collected")
+    return parser
+
+
+def parsed_pair_arguments(parser: argparse.ArgumentParser) -> argparse.Namespace:
+    """The arguments of a :func:`pair_measurement_parser`, ``--steps`` and ``--pairs`` checked."""
+    args = parser.parse_args()
+    if args.steps < 1 or args.pairs < 1:
+        parser.error("--steps and --pairs must be at least 1")
+    args.episodes = 0  # measure_runs passes it on; these tools count steps and pairs instead
+    return args
 
 
 def measurement_parser(

@@ -44,7 +44,7 @@ from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import UNSEEN_EPISODES_SEED, measure_runs, measurement_parser, trained_run
+from configs import collected_dipper, measure_runs, pair_measurement_parser, parsed_pair_arguments
 
 COLUMNS = (
     "pairs",
@@ -169,14 +169,9 @@ def measure(
     """Collect ``n_steps`` steps with the run's model (or ``model_file``) as training does, without updates, label
     ``n_pairs`` pairs drawn from them as a training round does, and return the model's primitive steps and
     :func:`preference_pull`."""
-    model, _ = trained_run(run, algo, env_id, seed=UNSEEN_EPISODES_SEED, model_file=model_file)
-    if not isinstance(model, DIPPER):
-        raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
+    model, steps = collected_dipper(run, algo, env_id, n_steps, model_file)
     if isinstance(model.subgoal_space, ElementSubgoalSpace):
         raise ValueError(f"{run}: the model's subgoals are task elements, with no way toward the goal to measure along")
-    steps = model.num_timesteps
-    model.train = lambda *args, **kwargs: None  # type: ignore[method-assign]  # collect only
-    model.learn(n_steps, reset_num_timesteps=False)
     pipeline = model.preference_pipeline
     assert pipeline.labeler is not None
     pairs = pipeline.sampler.sample(model.trajectory_buffer, n_pairs, np.random.default_rng(0))
@@ -187,18 +182,13 @@ def measure(
 
 
 def main() -> None:
-    parser = measurement_parser(__doc__, episodes=None, algo_help="a DIPPER entry")
-    parser.add_argument("--steps", type=int, default=6000, help="primitive steps collected per model")
-    parser.add_argument("--pairs", type=int, default=4000, help="pairs drawn from what was collected")
-    args = parser.parse_args()
-    if args.steps < 1 or args.pairs < 1:
-        parser.error("--steps and --pairs must be at least 1")
+    parser = pair_measurement_parser(__doc__)
+    args = parsed_pair_arguments(parser)
     th.set_num_threads(1)
 
     def measure_model(run: Path, algo: str, env_id: str, _: int, model_file: Path | None) -> tuple[int, dict]:
         return measure(run, algo, env_id, args.steps, args.pairs, model_file)
 
-    args.episodes = 0  # measure_runs passes it on; this measure counts steps instead
     measure_runs(parser, args, measure_model, "preference_pull.json", COLUMNS)
 
 

@@ -38,11 +38,10 @@ from sb3_dipper.common.preferences import (
     start_gaps,
     start_goal_distances,
 )
-from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import measure_runs, measurement_parser, trained_run
+from configs import collected_dipper, measure_runs, pair_measurement_parser, parsed_pair_arguments
 
 COLUMNS = ("group", "share", "tie_share", "start_gap", "end_prefers_nearer_start", "gain_prefers_nearer_start")
 
@@ -87,12 +86,7 @@ def measure(
     """Collect ``n_steps`` steps with the run's model (or ``model_file``) as training does, without updates, and
     answer the ties of ``n_pairs`` pairs drawn from them (with the model's own pair sampler, or with its
     ``matched_control_prob`` set to the one given); returns the model's primitive steps and :func:`tie_answers`."""
-    model, _ = trained_run(run, algo, env_id, seed=30_000, model_file=model_file)
-    if not isinstance(model, DIPPER):
-        raise ValueError(f"{run}: the model is a {type(model).__name__}, not a DIPPER (--algo names a DIPPER entry)")
-    steps = model.num_timesteps
-    model.train = lambda *args, **kwargs: None  # type: ignore[method-assign]  # collect only
-    model.learn(n_steps, reset_num_timesteps=False)
+    model, steps = collected_dipper(run, algo, env_id, n_steps, model_file, seed=30_000)
     pipeline = model.preference_pipeline
     assert pipeline.labeler is not None
     if matched_control_prob is not None:
@@ -104,17 +98,13 @@ def measure(
 
 
 def main() -> None:
-    parser = measurement_parser(__doc__, episodes=None, algo_help="a DIPPER entry")
-    parser.add_argument("--steps", type=int, default=6000, help="primitive steps collected per model")
-    parser.add_argument("--pairs", type=int, default=4000, help="pairs drawn from what was collected")
+    parser = pair_measurement_parser(__doc__)
     parser.add_argument(
         "--matched-control-prob",
         type=float,
         help="draw the pairs with this switch_kwargs matched_control_prob instead of the model's own",
     )
-    args = parser.parse_args()
-    if args.steps < 1 or args.pairs < 1:
-        parser.error("--steps and --pairs must be at least 1")
+    args = parsed_pair_arguments(parser)
     if args.matched_control_prob is not None and not 0.0 <= args.matched_control_prob <= 1.0:
         parser.error(f"--matched-control-prob must be in [0, 1], got {args.matched_control_prob}")
     th.set_num_threads(1)
@@ -122,7 +112,6 @@ def main() -> None:
     def measure_model(run: Path, algo: str, env_id: str, _: int, model_file: Path | None) -> tuple[int, dict]:
         return measure(run, algo, env_id, args.steps, args.pairs, model_file, args.matched_control_prob)
 
-    args.episodes = 0  # measure_runs passes it on; this measure counts steps instead
     measure_runs(parser, args, measure_model, "tie_answers.json", COLUMNS)
 
 
