@@ -47,6 +47,7 @@ __all__ = [
     "collected_dipper",
     "episode_successes",
     "evaluate",
+    "goal_and_way",
     "load_entry",
     "make_env",
     "make_model",
@@ -92,6 +93,16 @@ def collected_dipper(
     model.train = lambda *args, **kwargs: None  # type: ignore[method-assign]  # collect only
     model.learn(n_steps, reset_num_timesteps=False)
     return model, trained_steps
+
+
+def goal_and_way(model: HierarchicalAlgorithm, observation: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The goal of ``observation`` as a subgoal and the unit way still to go, from the achieved goal to that goal (zero
+    where they coincide), in world units, ``(..., subgoal_dim)`` each for observations ``(..., goal_dim)``."""
+    assert model.subgoal_space is not None
+    space = model.subgoal_space
+    goals = space.to_world(model._subgoal_actions(observation["desired_goal"]))
+    way = goals - space.to_world(model._subgoal_actions(observation["achieved_goal"], "achieved_goal"))
+    return goals, way / np.maximum(np.linalg.norm(way, axis=-1, keepdims=True), 1e-8)
 
 
 def pair_measurement_parser(description: str) -> argparse.ArgumentParser:

@@ -44,7 +44,7 @@ from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import collected_dipper, measure_runs, pair_measurement_parser, parsed_pair_arguments
+from configs import collected_dipper, goal_and_way, measure_runs, pair_measurement_parser, parsed_pair_arguments
 
 COLUMNS = (
     "pairs",
@@ -109,21 +109,10 @@ def mean_subgoal_forces(model: DIPPER, pairs: TrajectoryPairs) -> tuple[np.ndarr
     return subgoals, forces
 
 
-def ways_to_goal(model: DIPPER, pairs: TrajectoryPairs) -> tuple[np.ndarray, np.ndarray]:
-    """The pair's goal as a subgoal and the unit way to it from each step's achieved goal, ``(2, B, T, d)`` each."""
-    assert model.subgoal_space is not None
-    space = model.subgoal_space
-    observations = pairs.observations
-    goals = space.to_world(model._subgoal_actions(observations["desired_goal"]))
-    achieved = space.to_world(model._subgoal_actions(observations["achieved_goal"], "achieved_goal"))
-    way = goals - achieved
-    return goals, way / np.maximum(np.linalg.norm(way, axis=-1, keepdims=True), 1e-8)
-
-
 def preference_pull(model: DIPPER, pairs: TrajectoryPairs) -> dict[str, dict[str, float]]:
     """Per group of :func:`pair_groups`, the columns of :data:`COLUMNS` for labelled ``pairs`` (see the module)."""
     assert model.subgoal_space is not None
-    goals, ways = ways_to_goal(model, pairs)
+    goals, ways = goal_and_way(model, pairs.observations)
     stored_offsets = model.subgoal_space.to_world(model._pair_actions(pairs)) - goals
     mean_subgoals, forces = mean_subgoal_forces(model, pairs)
     # Per step (2, B, T): signed distance from the pair's goal along the way, and distance from it.

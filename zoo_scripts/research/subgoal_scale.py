@@ -40,7 +40,7 @@ from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import evaluate, measure_runs, measurement_parser, trained_hierarchy
+from configs import evaluate, goal_and_way, measure_runs, measurement_parser, trained_hierarchy
 
 DEFAULT_SCALES = (0.25, 0.5, 0.75, 1.0)
 
@@ -60,16 +60,15 @@ def move_proposals(model: HierarchicalAlgorithm, scale: float, rng: np.random.Ge
     seen: dict[str, list] = {"offset": [], "way": []}
 
     def moved(observation: dict[str, np.ndarray], deterministic: bool) -> np.ndarray:
-        goals = space.to_world(model._subgoal_actions(observation["desired_goal"]))
+        goals, way = goal_and_way(model, observation)
         offsets = space.to_world(decide(observation, deterministic)) - goals
         if rng is not None:
             directions = rng.normal(size=offsets.shape)
             directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
             offsets = directions * np.linalg.norm(offsets, axis=-1, keepdims=True)
         subgoals = space.to_world(space.to_unit(goals + scale * offsets))
-        way = goals - space.to_world(model._subgoal_actions(observation["achieved_goal"], "achieved_goal"))
         seen["offset"] += list(subgoals - goals)
-        seen["way"] += list(way / np.maximum(np.linalg.norm(way, axis=-1, keepdims=True), 1e-8))
+        seen["way"] += list(way)
         return space.to_unit(subgoals)
 
     model._high_level_actions = moved  # type: ignore[method-assign]
