@@ -21,6 +21,7 @@ from sb3_dipper.envs.fetch import (
     MAZE_ROWS,
     WALL_HALF_SIZE,
     FetchFourRoomMazeEnv,
+    MazeGeometry,
     cells_connected,
     generate_four_room_layout,
     register_fetch_envs,
@@ -224,6 +225,42 @@ def test_connectivity_check_sees_a_closed_wall():
     grid[6, 1] = grid[6, 8] = 1
     assert not cells_connected(grid, (1, 3), (9, 9))
     assert cells_connected(AUTHORS_LAYOUT.grid, (1, 3), (9, 9))
+
+
+def maze_observation(grid: np.ndarray) -> np.ndarray:
+    return np.concatenate([[1.3, 0.75, 0.425], grid.reshape(-1)]).astype(np.float32)
+
+
+def test_path_distance_follows_the_free_cells_not_the_straight_line():
+    maze, grid = MazeGeometry(), AUTHORS_LAYOUT.grid.copy()
+    grid[6, 8] = 1  # close the goal room's upper gate: from above it, the way round is long
+    goal = maze.cell_xy((9, 9))
+    above, beside = maze.cell_xy((5, 9)), maze.cell_xy((7, 5))
+    # Counted by hand: (5, 9) -> the gate (5, 6) -> (5, 1) -> the gate (6, 1) -> (8, 1) -> the gate (8, 6) -> (8, 9) ->
+    # (9, 9) is 20 steps; (7, 5) -> (8, 5) -> the gate (8, 6) -> (8, 9) -> (9, 9) is 6.
+    observations = np.stack([maze_observation(grid)] * 2)
+    distances = maze.path_distances(observations, np.stack([above, beside]), np.stack([goal, goal]))
+    np.testing.assert_allclose(distances, [20 * 0.05, 6 * 0.05])
+    assert np.linalg.norm(above - goal) < np.linalg.norm(beside - goal)  # the straight line prefers the other one
+
+
+def test_path_distance_agrees_with_the_shortest_cell_path_within_a_cell_and_from_a_wall():
+    maze, rng = MazeGeometry(), np.random.default_rng(0)
+    layout = generate_four_room_layout(rng)
+    observation = maze_observation(layout.grid)
+    free = [tuple(cell) for cell in np.argwhere(layout.grid == 0)]
+    goal = maze.cell_xy(layout.goal)
+    for cell in free[::7]:
+        steps = len(shortest_cell_path(cell, layout.goal, layout.grid.tolist())) - 1
+        assert maze.path_distances(observation, maze.cell_xy(cell), goal)[0] == pytest.approx(0.05 * steps)
+    inside = goal + np.array([0.01, -0.02])  # in the goal's cell: the straight distance
+    assert maze.path_distances(observation, inside, goal)[0] == pytest.approx(np.hypot(0.01, 0.02))
+    # A gripper rounded into the outer wall's cell counts from the free cell beside it.
+    wall_cell, free_cell = (0, layout.goal[1]), (1, layout.goal[1])
+    expected = 0.05 * (len(shortest_cell_path(free_cell, layout.goal, layout.grid.tolist())) - 1 + 1)
+    assert maze.path_distances(observation, maze.cell_xy(wall_cell), goal)[0] == pytest.approx(expected)
+    with pytest.raises(ValueError, match="11 x 11 grid"):
+        maze.path_distances(observation[:50], goal, goal)
 
 
 def test_maze_is_redrawn_every_reset_and_its_walls_follow():

@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 import tempfile
 import xml.etree.ElementTree as ET
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -168,6 +169,21 @@ def cells_connected(grid: np.ndarray, start: Cell, goal: Cell) -> bool:
     return True
 
 
+def _cell_steps_to(grid: np.ndarray, goal: Cell) -> np.ndarray:
+    """4-connected steps from every free cell of ``grid`` to ``goal`` over free cells (infinite where none joins)."""
+    steps = np.full(grid.shape, np.inf)
+    steps[goal] = 0.0
+    queue = deque([goal])
+    while queue:
+        row, col = queue.popleft()
+        for neighbour in ((row - 1, col), (row + 1, col), (row, col - 1), (row, col + 1)):
+            inside = 0 <= neighbour[0] < grid.shape[0] and 0 <= neighbour[1] < grid.shape[1]
+            if inside and grid[neighbour] != 1 and steps[neighbour] == np.inf:
+                steps[neighbour] = steps[row, col] + 1.0
+                queue.append(neighbour)
+    return steps
+
+
 # The authors' single layout (their env index 0): their generator seeds Python's ``random`` with 0 and draws the wall
 # row, the wall column and the four gates with ``randrange``. Replaying those draws (Python's Mersenne Twister and
 # integer ``randrange`` are unchanged since Python 3.2, so 3.11 gives what their 3.6 gave) yields wall row 6, wall
@@ -209,6 +225,42 @@ class MazeGeometry:
     def cell_of(self, xy: np.ndarray) -> Cell:
         row, col = np.rint((np.asarray(xy[:2]) - np.asarray(self.origin)) / self.cell_size).astype(int)
         return int(np.clip(row, 0, self.rows - 1)), int(np.clip(col, 0, self.cols - 1))
+
+    def path_distances(self, observations: np.ndarray, points: np.ndarray, goals: np.ndarray) -> np.ndarray:
+        """How far each point lies from its goal along the maze's free cells, in metres, ``(N,)``: the cell size times
+        the number of 4-connected steps from the point's cell to the goal's over free cells of the layout its
+        observation holds, or the straight distance within the goal's cell. This is the progress an oracle that knows
+        the walls compares, where the straight distance would prefer a gripper pressed against the wall nearest the
+        goal. A point rounded into a wall cell (the gripper touching a block) counts from its nearest free neighbour.
+
+        :param observations: maze observations ``(N, 3 + rows * cols)`` (gripper position, then the grid, 1 = wall)
+        :param points: ``(N, >= 2)`` positions (achieved goals)
+        :param goals: ``(N, >= 2)`` goal positions
+        """
+        observations, points, goals = np.atleast_2d(observations), np.atleast_2d(points), np.atleast_2d(goals)
+        if observations.shape[-1] != 3 + self.rows * self.cols:
+            raise ValueError(
+                f"observations must hold the gripper position and a {self.rows} x {self.cols} grid "
+                f"({3 + self.rows * self.cols} numbers per row), got shape {observations.shape}"
+            )
+        distances = np.empty(len(points))
+        fields: dict[tuple[bytes, Cell], np.ndarray] = {}
+        for index, (observation, point, goal) in enumerate(zip(observations, points, goals, strict=True)):
+            grid = np.rint(observation[3:]).astype(np.int8).reshape(self.rows, self.cols)
+            goal_cell, cell = self.cell_of(goal), self.cell_of(point)
+            key = (grid.tobytes(), goal_cell)
+            if key not in fields:
+                fields[key] = _cell_steps_to(grid, goal_cell)
+            steps = fields[key]
+            if grid[cell] == 1:
+                neighbours = [(cell[0] + dr, cell[1] + dc) for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1))]
+                inside = [n for n in neighbours if 0 <= n[0] < self.rows and 0 <= n[1] < self.cols]
+                distances[index] = self.cell_size * (1 + min(steps[n] for n in inside))
+            elif cell == goal_cell:
+                distances[index] = float(np.linalg.norm(np.asarray(point[:2]) - np.asarray(goal[:2])))
+            else:
+                distances[index] = self.cell_size * steps[cell]
+        return distances
 
     @property
     def interior_low(self) -> np.ndarray:
