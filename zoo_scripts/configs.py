@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.evaluation import evaluate_policy
 from stable_baselines3.common.vec_env import VecEnv
@@ -121,6 +122,24 @@ def parsed_pair_arguments(parser: argparse.ArgumentParser) -> argparse.Namespace
         parser.error("--steps and --pairs must be at least 1")
     args.episodes = 0  # measure_runs passes it on; these tools count steps and pairs instead
     return args
+
+
+# measure(run, algo, env_id, steps, pairs, model_file) -> (the model's primitive steps, its results per case)
+PairMeasure = Callable[[Path, str, str, int, int, "Path | None"], tuple[int, dict[str, dict[str, float]]]]
+
+
+def measure_pair_runs(description: str, measure: PairMeasure, report: str, columns: tuple[str, ...]) -> None:
+    """The command line of a tool that measures pairs drawn from what a DIPPER collects: :func:`parsed_pair_arguments`
+    of a :func:`pair_measurement_parser`, one torch thread, and :func:`measure_runs` with
+    ``measure(run, algo, env_id, steps, pairs, model_file)``."""
+    parser = pair_measurement_parser(description)
+    args = parsed_pair_arguments(parser)
+    th.set_num_threads(1)
+
+    def measure_model(run: Path, algo: str, env_id: str, _: int, model_file: Path | None) -> tuple[int, dict]:
+        return measure(run, algo, env_id, args.steps, args.pairs, model_file)
+
+    measure_runs(parser, args, measure_model, report, columns)
 
 
 def measurement_parser(

@@ -26,14 +26,13 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
-import torch as th
 
 from sb3_dipper.common.preferences import TrajectoryPairs, labels_from_scores, progress_gain_labels, progress_labels
 from sb3_dipper.envs.fetch import MazeGeometry
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import collected_dipper, measure_runs, pair_measurement_parser, parsed_pair_arguments
+from configs import collected_dipper, measure_pair_runs
 
 ORACLES = ("end", "gain", "path")
 COLUMNS = ("group", "share", "tie_share", *(f"{oracle}_{what}" for oracle in ORACLES for what in ("agreement", "decided")))
@@ -105,14 +104,7 @@ def measure(
 
 
 def main() -> None:
-    parser = pair_measurement_parser(__doc__)
-    args = parsed_pair_arguments(parser)
-    th.set_num_threads(1)
-
-    def measure_model(run: Path, algo: str, env_id: str, _: int, model_file: Path | None) -> tuple[int, dict]:
-        return measure(run, algo, env_id, args.steps, args.pairs, model_file)
-
-    measure_runs(parser, args, measure_model, "label_agreement.json", COLUMNS)
+    measure_pair_runs(__doc__, measure, "label_agreement.json", COLUMNS)
 
 
 if __name__ == "__main__":

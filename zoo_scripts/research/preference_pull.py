@@ -44,7 +44,7 @@ from sb3_dipper.dipper import DIPPER
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from configs import collected_dipper, goal_and_way, measure_runs, pair_measurement_parser, parsed_pair_arguments
+from configs import collected_dipper, goal_and_way, measure_pair_runs
 
 COLUMNS = (
     "pairs",
@@ -171,14 +171,7 @@ def measure(
 
 
 def main() -> None:
-    parser = pair_measurement_parser(__doc__)
-    args = parsed_pair_arguments(parser)
-    th.set_num_threads(1)
-
-    def measure_model(run: Path, algo: str, env_id: str, _: int, model_file: Path | None) -> tuple[int, dict]:
-        return measure(run, algo, env_id, args.steps, args.pairs, model_file)
-
-    measure_runs(parser, args, measure_model, "preference_pull.json", COLUMNS)
+    measure_pair_runs(__doc__, measure, "preference_pull.json", COLUMNS)
 
 
 if __name__ == "__main__":
