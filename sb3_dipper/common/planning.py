@@ -4,6 +4,9 @@ Nodes are voxels of the subgoal space (edge length ``resolution``) that some opt
 edge joins the voxel an option started in to the voxel it ended in. Edges are facts about reached states (as the
 primitive-in-the-loop labels are), so the graph never asks the current lower level for anything, and paths through it
 stitch pieces of different trajectories together.
+The graph knows places only, not what else the observation holds: on a task whose obstacles move between episodes
+(the random Fetch mazes draw a new layout at every reset) it joins edges that options took in different layouts, and a
+path through it may cross a wall of the current one.
 
 :meth:`SubgoalGraph.plan` walks ``lookahead`` edges along a shortest path (in options) from the voxel of the
 current achieved goal toward the goal: toward the goal's own voxel, or, if no option ever ended there, toward the

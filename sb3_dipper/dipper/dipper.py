@@ -196,7 +196,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         training proposals, and the preference-trained policy proposes every subgoal in :meth:`predict`; such a model
         can be exported, :meth:`export_policy`). For example ``dict(mode="subgoal", lookahead=2)``. The planner says
         per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`), and only there does its waypoint
-        replace the policy's proposal. With ``"subgoal"`` the share of training subgoals that were the planner's
+        replace the policy's proposal. The graph knows places only: where obstacles move between episodes (random
+        maze layouts) its paths may cross the current episode's walls. With ``"subgoal"`` the share of training subgoals that were the planner's
         (random subgoals excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs'
         last subgoal was the planner's. Its keys were parameters of their own before (``planning``, ``plan_in_predict``,
         ``planning_lookahead``, ``planning_resolution``, ``planning_value_threshold``), still taken, deprecated
