@@ -463,14 +463,12 @@ def page(tmp_path):
         env={**os.environ, "MUJOCO_GL": "egl"},
         stderr=subprocess.DEVNULL,
     )
-    url = f"http://127.0.0.1:{port}/"
-    for _ in range(300):
-        try:
-            urllib.request.urlopen(url + "api/status", timeout=1)
-            break
-        except OSError:
-            time.sleep(0.1)
-    yield url, model, tmp_path / "labels"
+    try:
+        wait_until_serving(server, port)
+    except AssertionError:
+        server.kill()
+        raise
+    yield f"http://127.0.0.1:{port}/", model, tmp_path / "labels"
     server.terminate()
     server.wait(timeout=10)
 
@@ -481,7 +479,7 @@ def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
 
     url, model, directory = page
     chromium.get(url)
-    wait = WebDriverWait(chromium, 20)
+    wait = WebDriverWait(chromium, 60)  # each pair's frames are rendered on demand, slowly on a loaded machine
 
     def shown_pair() -> int:
         wait.until(lambda browser: browser.find_element(By.ID, "pair-id").text not in ("", "-"))
@@ -669,6 +667,19 @@ def request_page(
         connection.close()
 
 
+def wait_until_serving(server: subprocess.Popen, port: int, seconds: float = 180.0) -> int:
+    """Wait until the page ``server`` started answers on ``port`` (importing the page's packages takes long on a busy
+    machine); the status of its ``/api/status``. Fails if the server exits or does not answer in ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            return request_page(port, "GET", "/api/status")[0]
+        except OSError:
+            assert server.poll() is None, f"the labelling page exited with {server.returncode}"
+            assert time.monotonic() < deadline, f"the labelling page did not start in {seconds:.0f} s"
+            time.sleep(0.2)
+
+
 def label_body(pair_id: object = 0, client: str = "x", answer: str = "left") -> bytes:
     return json.dumps({"pair_id": pair_id, "client": client, "answer": answer}).encode()
 
@@ -748,16 +759,7 @@ def test_the_page_never_runs_in_debug_mode_whatever_the_environment_says(tmp_pat
         stderr=subprocess.DEVNULL,
     )
     try:
-        deadline = time.monotonic() + 180  # importing the page's packages takes long on a busy machine
-        while True:
-            try:
-                status = request_page(port, "GET", "/api/status")[0]
-                break
-            except OSError:
-                assert server.poll() is None, f"the labelling page exited with {server.returncode}"
-                assert time.monotonic() < deadline, "the labelling page did not start in 180 s"
-                time.sleep(0.2)
-        assert status == 200
+        assert wait_until_serving(server, port) == 200
         status, reply = request_page(port, "GET", "/console")
         assert status == 404 and b"Werkzeug" not in reply
     finally:
