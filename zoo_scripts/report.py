@@ -28,7 +28,8 @@ that has learning curves: the mean over seeds and a band of one standard deviati
 ``docs/benchmarks/paper-tasks.png`` and the cells to ``docs/benchmarks/paper-tasks-matrix.csv``. The paper's ablations
 of lambda and beta on the fixed pick-and-place (``docs/benchmarks/ablations-pnp-fixed.csv``, the paper's values from the
 ``dipper_paper`` rows) go between ``<!-- ablations -->`` markers of ``BENCHMARKS.md``, their figure (one panel per
-parameter) to ``docs/benchmarks/ablations-pnp-fixed.png``.
+parameter) to ``docs/benchmarks/ablations-pnp-fixed.png``. How many of each seed's evaluations succeeded on the fixed
+pick-and-place, per column, goes between ``<!-- evaluations-with-success -->`` markers of ``BENCHMARKS.md``.
 """
 
 from __future__ import annotations
@@ -359,6 +360,25 @@ def whose_success() -> str:
     return "\n".join(lines)
 
 
+def success_counts(curves: list[plot.Curve]) -> list[str]:
+    """Per seed's curve: how many of its evaluations had any success, as ``"k of n"``."""
+    return [f"{int(np.sum(success > 0))} of {len(success)}" for _, success in curves]
+
+
+def evaluations_with_success(panels: dict[str, dict[str, list[plot.Curve]]], task: str = PNP_FIXED) -> str:
+    """Per column with learning curves on ``task`` (the figure's panel): how many of each seed's evaluations within the
+    budget had any success, and of all of them; the table between ``<!-- evaluations-with-success -->`` markers. Where
+    the start and the goal never move every evaluation is all or nothing, so a seed's last one, the matrix's cell, says
+    little about how often it succeeds."""
+    header = ["column", "evaluations with success, per seed", "of all"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for heading, curves in panels[task].items():
+        succeeded = sum(int(np.sum(success > 0)) for _, success in curves)
+        evaluations = sum(len(success) for _, success in curves)
+        lines.append(f"| {heading} | {', '.join(success_counts(curves))} | {succeeded} of {evaluations} |")
+    return "\n".join(lines)
+
+
 def ablations() -> tuple[str, dict[str, dict[str, list[plot.Curve]]]]:
     """The ablation table (per value: success at the budget, evaluations with any success per seed, the mean success
     over every evaluation) and the figure's panels, one per parameter."""
@@ -370,7 +390,7 @@ def ablations() -> tuple[str, dict[str, dict[str, list[plot.Curve]]]]:
         for value, source in settings:
             final, curves = learning_cell(PNP_FIXED, source)
             panel[f"{parameter} = {value}"] = curves
-            counts = ", ".join(f"{int(np.sum(success > 0))} of {len(success)}" for _, success in curves)
+            counts = ", ".join(success_counts(curves))
             overall = f"{np.mean(np.concatenate([success for _, success in curves])):.2f}" if curves else ""
             lines.append(f"| {parameter} | {value} | {final.text()} | {counts} | {overall} |")
     return "\n".join(lines), panels
@@ -393,13 +413,15 @@ def main() -> None:
     whose = whose_success()
     speeds = cell_speeds(csv_rows)
     ablation_table, ablation_panels = ablations()
-    print(tables, whose, speeds, ablation_table, sep="\n\n")
+    flips = evaluations_with_success(panels)
+    print(tables, whose, speeds, flips, ablation_table, sep="\n\n")
     if args.write:
         for document in (REPO / "BENCHMARKS.md", REPO / "README.md"):
             write_between_markers(document, tables)
         write_between_markers(REPO / "BENCHMARKS.md", whose, "whose-success")
         write_between_markers(REPO / "BENCHMARKS.md", speeds, "cell-speed")
         write_between_markers(REPO / "BENCHMARKS.md", ablation_table, "ablations")
+        write_between_markers(REPO / "BENCHMARKS.md", flips, "evaluations-with-success")
         lines = io.StringIO()
         csv.writer(lines, lineterminator="\n").writerows(csv_rows)
         write_bytes_atomically(RESULTS / "paper-tasks-matrix.csv", lines.getvalue().encode())

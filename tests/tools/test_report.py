@@ -122,3 +122,11 @@ def test_the_ablations_take_the_papers_value_from_its_own_rows(results, monkeypa
     assert rows[3] == "| beta | 1 | 0.00 (1) | 1 of 2 | 0.50 |"
     assert list(panels) == ["beta, fixed pick-and-place"]
     assert list(panels["beta, fixed pick-and-place"]) == ["beta = 0.1", "beta = 1"]
+
+
+def test_evaluations_with_success_count_every_evaluation_within_the_budget(results):
+    _, curves = report.learning_cell("FetchPickAndPlaceFixed-v0", report.Learning("sac"))
+    table = report.evaluations_with_success({"FetchPickAndPlaceFixed-v0": {"SAC+HER": curves}}).splitlines()
+    # Seed 0 succeeded at 135k, not at 150k (its 1.00 at 165k lies past the budget); seed 1 at its one evaluation.
+    assert table[0] == "| column | evaluations with success, per seed | of all |"
+    assert table[2:] == ["| SAC+HER | 1 of 2, 1 of 1 | 2 of 3 |"]
