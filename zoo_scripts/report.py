@@ -105,7 +105,7 @@ DIPPER_PROFILE: dict[str, Source] = {
     PNP_FIXED: Learning("dipper-goal-episodes"),
     PUSH_FIXED: Learning("dipper-goal-episodes"),
     PNP: Learning("dipper-anchored-goalep-hgp0"),
-    PUSH: Learning("dipper-anchored-goalep"),
+    PUSH: Learning("dipper-anchored-goalep-hgp0"),
     KITCHEN: Learning("dipper-dart20-noqf-bc1-demonorm-demo0.5"),
     MAZE_FIXED: Learning("dipper-goal-episodes"),
     MAZE: Learning("dipper-anchored-goalep"),
@@ -118,7 +118,7 @@ def final_models(case: str) -> dict[str, Source]:
         PNP_FIXED: Evaluated("planner-share-goal-episodes-profile.csv", "FetchPickAndPlaceFixed", case),
         PUSH_FIXED: Evaluated("planner-share-goal-episodes-push.csv", "FetchPushFixed", case),
         PNP: Evaluated("planner-share-anchored-goalep-hgp0.csv", "/anchored-goalep-hgp0/", case),
-        PUSH: Evaluated("planner-share-anchored-goalep-push.csv", "/anchored-goalep/", case),
+        PUSH: Evaluated("planner-share-anchored-goalep-push-hgp0.csv", "/anchored-goalep-hgp0/", case),
         MAZE_FIXED: Evaluated("planner-share-goal-episodes-maze.csv", "FetchFourRoomMazeFixed", case),
         MAZE: Evaluated("planner-share-anchored-goalep-rmaze.csv", "/anchored-goalep/", case),
     }
