@@ -197,10 +197,11 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         can be exported, :meth:`export_policy`). For example ``dict(mode="subgoal", lookahead=2)``. The planner says
         per row whether it planned (:class:`~sb3_dipper.common.planning.Plan`), and only there does its waypoint
         replace the policy's proposal. The graph knows places only: where obstacles move between episodes (random
-        maze layouts) its paths may cross the current episode's walls. With ``"subgoal"`` the share of training subgoals that were the planner's
-        (random subgoals excluded) is logged as ``rollout/planned_share``, and :attr:`last_planned` tells which envs'
-        last subgoal was the planner's. Its keys were parameters of their own before (``planning``, ``plan_in_predict``,
-        ``planning_lookahead``, ``planning_resolution``, ``planning_value_threshold``), still taken, deprecated
+        maze layouts) its paths may cross the current episode's walls. With ``"subgoal"`` the share of training
+        subgoals that were the planner's (random subgoals excluded) is logged as ``rollout/planned_share``, and
+        :attr:`last_planned` tells which envs' last subgoal was the planner's. Its keys were parameters of their own
+        before (``planning``, ``plan_in_predict``, ``planning_lookahead``, ``planning_resolution``,
+        ``planning_value_threshold``), still taken, deprecated
     :param trajectory_buffer_size: number of higher-level trajectories kept for pair sampling
     :param preference_source: labels pairs (default: primitive-in-the-loop labels from the env's sparse reward); also
         ``"noisy:P"``, ``"people:DIRECTORY"``, ``"mixed:DIRECTORY:FRACTION"`` or a dict (see
