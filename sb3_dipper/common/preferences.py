@@ -312,13 +312,23 @@ def labels_from_scores(scores: np.ndarray) -> np.ndarray:
     return np.where(scores[0] > scores[1], 1.0, np.where(scores[0] < scores[1], 0.0, 0.5)).astype(np.float32)
 
 
+def last_options(pairs: TrajectoryPairs) -> tuple[DictObs, np.ndarray]:
+    """Each trajectory's last real option: its observation (every key, ``desired_goal`` the pair's goal) and the
+    achieved goal it reached, ``(2, B, ...)`` each."""
+    last = np.maximum(pairs.mask.sum(axis=-1) - 1, 0)
+
+    def at_last(values: np.ndarray) -> np.ndarray:
+        index = last.reshape(*last.shape, 1, *([1] * (values.ndim - 3)))
+        return np.take_along_axis(values, index, axis=2)[:, :, 0]
+
+    return {key: at_last(value) for key, value in pairs.observations.items()}, at_last(pairs.next_achieved_goals)
+
+
 def final_goal_distances(pairs: TrajectoryPairs) -> np.ndarray:
     """``(2, B)``: the distance from where each trajectory's last real option ended to the pair's goal (Euclidean,
     in goal coordinates): the progress an oracle that knows the task's geometry would compare."""
-    last = np.maximum(pairs.mask.sum(axis=-1) - 1, 0)[..., None, None]
-    reached = np.take_along_axis(pairs.next_achieved_goals, last, axis=2)[:, :, 0]
-    goals = np.take_along_axis(pairs.observations["desired_goal"], last, axis=2)[:, :, 0]
-    return np.linalg.norm(reached - goals, axis=-1)
+    observations, reached = last_options(pairs)
+    return np.linalg.norm(reached - observations["desired_goal"], axis=-1)
 
 
 def progress_labels(pairs: TrajectoryPairs) -> np.ndarray:

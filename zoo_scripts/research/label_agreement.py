@@ -27,7 +27,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
 
-from sb3_dipper.common.preferences import TrajectoryPairs, labels_from_scores, progress_gain_labels, progress_labels
+from sb3_dipper.common.preferences import (
+    TrajectoryPairs,
+    labels_from_scores,
+    last_options,
+    progress_gain_labels,
+    progress_labels,
+)
 from sb3_dipper.envs.fetch import MazeGeometry
 
 # Run as a script, this file's folder is on the path; the scripts' folder above it holds the modules it shares.
@@ -40,14 +46,11 @@ COLUMNS = ("group", "share", "tie_share", *(f"{oracle}_{what}" for oracle in ORA
 
 def final_path_distances(pairs: TrajectoryPairs, maze: MazeGeometry) -> np.ndarray:
     """``(2, B)``: how far along the maze's free cells each trajectory's last real option ended from the pair's goal."""
-    last = np.maximum(pairs.mask.sum(axis=-1) - 1, 0)[..., None, None]
-    observations = np.take_along_axis(pairs.observations["observation"], last, axis=2)[:, :, 0]
-    reached = np.take_along_axis(pairs.next_achieved_goals, last, axis=2)[:, :, 0]
-    goals = np.take_along_axis(pairs.observations["desired_goal"], last, axis=2)[:, :, 0]
+    observations, reached = last_options(pairs)
     distances = maze.path_distances(
-        observations.reshape(-1, observations.shape[-1]),
+        observations["observation"].reshape(-1, observations["observation"].shape[-1]),
         reached.reshape(-1, reached.shape[-1]),
-        goals.reshape(-1, goals.shape[-1]),
+        observations["desired_goal"].reshape(-1, observations["desired_goal"].shape[-1]),
     )
     return distances.reshape(pairs.mask.shape[:2])
 
