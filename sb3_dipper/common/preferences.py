@@ -109,6 +109,31 @@ def match_control_trajectories(
     return policy_rows, controls[gaps.argmin(axis=1)]
 
 
+def twin_control_trajectories(
+    buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``n_pairs`` stored trajectories not driven by the goal, drawn uniformly among those whose episode a stored
+    goal-driven trajectory replayed (the same :attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.episode_seeds`:
+    twin episodes), each with that twin, as two index arrays; ``None`` when no stored trajectory has a twin.
+
+    The pair then compares the policy's subgoals with the goal as every subgoal in the same episode: same layout, same
+    start, same goal.
+    """
+    stored = np.arange(len(buffer))
+    seeds = buffer.episode_seeds[: len(buffer)]
+    driven = buffer.goal_driven[: len(buffer)]
+    known = seeds >= 0
+    controls = stored[driven & known]
+    # The latest stored control of each seed (a seed is drawn from 2**62 values: one control per seed in practice).
+    control_of_seed = dict(zip(seeds[controls].tolist(), controls.tolist(), strict=True))
+    own = stored[~driven & known]
+    twinned = own[np.isin(seeds[own], seeds[controls])]
+    if len(twinned) == 0:
+        return None
+    policy_rows = rng.choice(twinned, size=n_pairs)
+    return policy_rows, np.array([control_of_seed[seed] for seed in seeds[policy_rows].tolist()], dtype=np.int64)
+
+
 def start_gaps(pairs: TrajectoryPairs) -> np.ndarray:
     """``(B,)``: how far apart the two trajectories of each pair started (:func:`trajectory_starts`, Euclidean; with the
     pair's goals, hindsight goals included)."""
@@ -124,19 +149,22 @@ def sample_trajectory_pairs(
     rng: np.random.Generator,
     contrast_env_goals: bool = True,
     matched_control_prob: float = 0.0,
+    match_twins: bool = False,
 ) -> TrajectoryPairs:
     """Draw ``n_pairs`` unlabelled pairs; with ``hindsight_goal_prob`` both share a goal achieved by one of them, except,
     with ``contrast_env_goals``, a pair of a goal-driven trajectory
     (:attr:`~sb3_dipper.common.trajectories.TrajectoryBuffer.goal_driven`) and another, which compares the control with
     the other driver on the env's own goals (the draws are the same either way). With ``matched_control_prob`` a pair
     is instead a trajectory of the policy's (tau^1) and the goal-driven one that started nearest it (tau^2,
-    :func:`match_control_trajectories`); at 0 no draw is made for it, so the pairs are those drawn without it."""
+    :func:`match_control_trajectories`), or with ``match_twins`` the goal-driven one that played the same episode
+    (:func:`twin_control_trajectories`); at 0 no draw is made for it, so the pairs are those drawn without it."""
     if len(buffer) < 2:
         raise ValueError("Preference pairs need at least two finished higher-level trajectories")
     indices = rng.integers(len(buffer), size=(2, n_pairs))
     if matched_control_prob > 0.0:
         matched = rng.random(n_pairs) < matched_control_prob
-        matches = match_control_trajectories(buffer, int(matched.sum()), rng)
+        match = twin_control_trajectories if match_twins else match_control_trajectories
+        matches = match(buffer, int(matched.sum()), rng)
         if matches is not None:
             indices[:, matched] = np.stack(matches)
     observations = {key: value[indices].copy() for key, value in buffer.observations.items()}
@@ -257,6 +285,7 @@ class TrajectoryPairSampler(PairSampler):
     :param contrast_env_goals: a pair of a goal-driven trajectory and another keeps the env's goals
     :param matched_control_prob: probability that a pair is a trajectory of the policy's and the goal-driven one that
         started nearest it
+    :param match_twins: the goal-driven one of a matched pair is instead the one that played the same episode
     """
 
     min_trajectories = 2
@@ -268,12 +297,14 @@ class TrajectoryPairSampler(PairSampler):
         goal_reached: GoalReachedFn | None = None,
         contrast_env_goals: bool = True,
         matched_control_prob: float = 0.0,
+        match_twins: bool = False,
     ) -> None:
         self.hindsight_goal_prob = hindsight_goal_prob
         self.subgoal_space = subgoal_space
         self.goal_reached = goal_reached
         self.contrast_env_goals = contrast_env_goals
         self.matched_control_prob = matched_control_prob
+        self.match_twins = match_twins
 
     def sample(self, buffer: TrajectoryBuffer, n_pairs: int, rng: np.random.Generator) -> TrajectoryPairs:
         pairs = sample_trajectory_pairs(
@@ -284,6 +315,7 @@ class TrajectoryPairSampler(PairSampler):
             rng,
             self.contrast_env_goals,
             self.matched_control_prob,
+            self.match_twins,
         )
         return pairs if self.goal_reached is None else truncate_at_first_arrival(pairs, self.goal_reached)
 
@@ -652,10 +684,13 @@ def _checked_trajectory_state(
     arrays: dict[str, np.ndarray], trajectory_buffer: TrajectoryBuffer, source: str
 ) -> dict[str, np.ndarray]:
     """The stored trajectories, if they fit ``trajectory_buffer`` exactly (same keys, shapes and capacity). A file saved
-    before trajectories recorded who drove them has no ``goal_driven``: none was the goal-driven control's."""
+    before trajectories recorded who drove them has no ``goal_driven``: none was the goal-driven control's; one saved
+    before they recorded their episodes' seeds has no ``episode_seeds``: none is known."""
     expected = trajectory_buffer.state_dict()
     if "goal_driven" not in arrays and "lengths" in arrays:
         arrays = {**arrays, "goal_driven": np.zeros(arrays["lengths"].shape, dtype=bool)}
+    if "episode_seeds" not in arrays and "lengths" in arrays:
+        arrays = {**arrays, "episode_seeds": np.full(arrays["lengths"].shape, -1, dtype=np.int64)}
     missing = sorted(set(expected) - set(arrays))
     unknown = sorted(set(arrays) - set(expected))
     if missing:
@@ -685,6 +720,10 @@ def _checked_trajectory_state(
         raise ValueError(f"Malformed preference file {source}: trajectories/position must be [position, 0 or 1]")
     if not np.all(np.isin(arrays["goal_driven"], (0, 1))):
         raise ValueError(f"Malformed preference file {source}: trajectories/goal_driven must hold booleans (0 or 1)")
+    if arrays["episode_seeds"].dtype.kind not in "iu" or np.any(arrays["episode_seeds"] < -1):
+        raise ValueError(
+            f"Malformed preference file {source}: trajectories/episode_seeds must hold integer seeds (or -1: unknown)"
+        )
     return {key: arrays[key] for key in expected}
 
 

@@ -4,7 +4,9 @@ A trajectory is the sequence of higher-level decisions of one base-env episode: 
 ``s_t`` (original values, all keys), the higher-level action ``u_t`` in ``[-1, 1]^d`` and the achieved goal
 ``ag_{t+1}`` reached when the option ended. Trajectories are stored padded to ``max_length`` with a mask, each with
 whether the env's goal was every subgoal of it (:attr:`TrajectoryBuffer.goal_driven`: the goal-driven control's
-trajectories, which DIPPER's ``goal_episode_prob`` collects).
+trajectories, which DIPPER's ``goal_episode_prob`` collects) and, where an
+:class:`~sb3_dipper.common.episode_seeds.EpisodeSeeds` stream seeded its episode, that episode's seed
+(:attr:`TrajectoryBuffer.episode_seeds`: two trajectories with one seed played the same episode).
 """
 
 from __future__ import annotations
@@ -41,10 +43,15 @@ class TrajectoryBuffer:
         self.lengths = np.zeros(capacity, dtype=np.int64)
         # Whether the env's goal was the subgoal at every step (the collector says so; nothing compares subgoals).
         self.goal_driven = np.zeros(capacity, dtype=bool)
+        # The seed of the episode a trajectory played from its start, as the env reported it; -1: no seed reported,
+        # or a trajectory continuing an episode that outlasted max_length (its twin's continuation may differ).
+        self.episode_seeds = np.full(capacity, -1, dtype=np.int64)
         self.pos = 0
         self.full = False
         self._open: list[list[tuple[DictObs, np.ndarray, np.ndarray]]] = [[] for _ in range(n_envs)]
         self._open_goal_driven = np.ones(n_envs, dtype=bool)
+        self._open_seeds = np.full(n_envs, -1, dtype=np.int64)
+        self._open_starts_episode = np.ones(n_envs, dtype=bool)
 
     def __len__(self) -> int:
         return self.capacity if self.full else self.pos
@@ -56,12 +63,16 @@ class TrajectoryBuffer:
         next_achieved_goals: np.ndarray,
         dones: np.ndarray,
         goal_driven: np.ndarray | None = None,
+        episode_seeds: np.ndarray | None = None,
     ) -> None:
         """Add one higher-level step of every env (original observations); close the trajectories of done envs.
 
         :param goal_driven: per env, whether this step's subgoal was the env's goal (``None``: no env's was); a
             trajectory is :attr:`goal_driven` if every one of its steps was
+        :param episode_seeds: per env, the seed of the episode this step belongs to (-1 or ``None``: not known)
         """
+        if episode_seeds is not None:
+            self._open_seeds[:] = episode_seeds
         if goal_driven is None:
             self._open_goal_driven[:] = False
         else:
@@ -70,9 +81,9 @@ class TrajectoryBuffer:
             step_obs = {key: value[env_idx].copy() for key, value in obs.items()}
             self._open[env_idx].append((step_obs, actions[env_idx].copy(), next_achieved_goals[env_idx].copy()))
             if dones[env_idx] or len(self._open[env_idx]) == self.max_length:
-                self._close(env_idx)
+                self._close(env_idx, ended_episode=bool(dones[env_idx]))
 
-    def _close(self, env_idx: int) -> None:
+    def _close(self, env_idx: int, ended_episode: bool) -> None:
         steps = self._open[env_idx]
         self._open[env_idx] = []
         length = len(steps)
@@ -85,7 +96,10 @@ class TrajectoryBuffer:
         self.next_achieved_goals[self.pos, :length] = np.stack([step[2] for step in steps])
         self.lengths[self.pos] = length
         self.goal_driven[self.pos] = self._open_goal_driven[env_idx]
+        self.episode_seeds[self.pos] = self._open_seeds[env_idx] if self._open_starts_episode[env_idx] else -1
         self._open_goal_driven[env_idx] = True
+        self._open_starts_episode[env_idx] = ended_episode
+        self._open_seeds[env_idx] = -1
         self.pos = (self.pos + 1) % self.capacity
         self.full = self.full or self.pos == 0
 
@@ -93,6 +107,8 @@ class TrajectoryBuffer:
         """Drop unfinished trajectories (their env is being reset)."""
         self._open = [[] for _ in range(self.n_envs)]
         self._open_goal_driven[:] = True
+        self._open_seeds[:] = -1
+        self._open_starts_episode[:] = True
 
     def mask(self, indices: np.ndarray) -> np.ndarray:
         """``(len(indices), max_length)`` booleans: which steps of each trajectory are real."""
@@ -106,6 +122,7 @@ class TrajectoryBuffer:
             next_achieved_goals=self.next_achieved_goals,
             lengths=self.lengths,
             goal_driven=self.goal_driven,
+            episode_seeds=self.episode_seeds,
             position=np.array([self.pos, int(self.full)]),
         )
         return arrays
@@ -117,7 +134,7 @@ class TrajectoryBuffer:
         self.next_achieved_goals[...] = arrays["next_achieved_goals"]
         self.lengths[...] = arrays["lengths"]
         self.goal_driven[...] = arrays["goal_driven"]
+        self.episode_seeds[...] = arrays["episode_seeds"]
         self.pos, full = (int(value) for value in arrays["position"])
         self.full = bool(full)
-        self._open = [[] for _ in range(self.n_envs)]
-        self._open_goal_driven[:] = True
+        self.discard_open()

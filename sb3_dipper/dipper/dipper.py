@@ -19,6 +19,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_dipper.common.deprecation import DeprecatedAttribute, MovedParameter
+from sb3_dipper.common.episode_seeds import EPISODE_SEED_KEY, EpisodeSeeds
 from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, sibling_path
 from sb3_dipper.common.losses import (
     anchor_penalty,
@@ -75,6 +76,7 @@ DEFAULT_SWITCH_KWARGS: dict[str, Any] = dict(
     contrast_env_goals=True,
     anchor_coef=0.0,
     matched_control_prob=0.0,
+    twin_episodes=False,
 )
 # The switches that were DIPPER's parameters before switch_kwargs (still taken as parameters, deprecated).
 LEGACY_SWITCHES = (
@@ -117,15 +119,21 @@ def checked_switch_kwargs(switch_kwargs: Mapping[str, Any]) -> dict[str, Any]:
         settings["matched_control_prob"] = as_float(
             "switch_kwargs['matched_control_prob']", settings["matched_control_prob"], 0.0, 1.0
         )
-        if settings["matched_control_prob"] > 0.0 and settings["goal_episode_prob"] == 0.0:
+        for key in ("hindsight_actions", "truncate_at_goal", "contrast_env_goals", "twin_episodes"):
+            settings[key] = as_bool(f"switch_kwargs['{key}']", settings[key])
+        if settings["twin_episodes"] and settings["goal_episode_prob"] > 0.0:
+            raise InvalidSetting(
+                "switch_kwargs['goal_episode_prob']",
+                "switch_kwargs['twin_episodes'] chooses the goal-driven episodes itself (the second env of each pair): "
+                "leave goal_episode_prob at 0, or twin_episodes at False",
+            )
+        if settings["matched_control_prob"] > 0.0 and settings["goal_episode_prob"] == 0.0 and not settings["twin_episodes"]:
             raise InvalidSetting(
                 "switch_kwargs['matched_control_prob']",
                 "switch_kwargs['matched_control_prob'] pairs a policy trajectory with a goal-driven one, which only "
-                "goal episodes collect: set switch_kwargs['goal_episode_prob'] above 0 (e.g. 0.5), "
-                "or leave matched_control_prob at 0",
+                "goal episodes collect: set switch_kwargs['goal_episode_prob'] above 0 (e.g. 0.5) or twin_episodes "
+                "to True, or leave matched_control_prob at 0",
             )
-        for key in ("hindsight_actions", "truncate_at_goal", "contrast_env_goals"):
-            settings[key] = as_bool(f"switch_kwargs['{key}']", settings[key])
         settings["value_reg"] = as_choice("switch_kwargs['value_reg']", settings["value_reg"], VALUE_REGULARIZERS)
         settings["value_score_coef"] = as_float(
             "switch_kwargs['value_score_coef']", settings["value_score_coef"], 0.0, reason="0 turns the value score off"
@@ -179,12 +187,16 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         a hindsight goal; default True), ``matched_control_prob`` (probability that a pair is a trajectory of the
         policy's and the goal-driven trajectory whose start, its achieved goal and goal at the first option, is
         nearest, so that a label compares the policy's subgoals with the control's from about the same start; needs
-        ``goal_episode_prob`` above 0; 0: off) and ``anchor_coef`` (weight of a goal-anchored policy's squared offset from
-        the goal's action added to the loss, a leash that keeps its subgoals at the goal where the preferences do not
-        pull them off; needs ``policy_kwargs`` ``goal_anchored=True``; 0: off), for example
+        ``goal_episode_prob`` above 0 or ``twin_episodes``; 0: off), ``twin_episodes`` (the envs run in pairs that
+        play the same episodes, each wrapped in :class:`~sb3_dipper.common.episode_seeds.EpisodeSeeds`, the second of
+        each pair driven by the goal as every subgoal, in place of ``goal_episode_prob``; a matched pair is then a
+        policy trajectory and its twin, same layout, start and goal; default False) and ``anchor_coef`` (weight of a
+        goal-anchored policy's squared offset from the goal's action added to the loss, a leash that keeps its
+        subgoals at the goal where the preferences do not pull them off; needs ``policy_kwargs``
+        ``goal_anchored=True``; 0: off), for example
         ``dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True)``
         (:data:`DEFAULT_SWITCH_KWARGS`); ``model.switch_kwargs`` holds them all, and a key changed there acts from the
-        next :meth:`learn`. Each key but the last four is also taken as a parameter of its own, deprecated
+        next :meth:`learn`. Each key but the last five is also taken as a parameter of its own, deprecated
     :param planner_kwargs: planning over achieved states, the keyword arguments of the planner,
         :class:`~sb3_dipper.common.planning.SubgoalPlanner` (``model.planner``; default: no planning, the paper):
         ``mode`` ``"off"``, ``"subgoal"`` (where its graph knows a path to the goal, propose the waypoint on it;
@@ -404,6 +416,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self._pair_sampler.goal_reached = self._goal_reached if self.switch_kwargs["truncate_at_goal"] else None
         self._pair_sampler.contrast_env_goals = self.switch_kwargs["contrast_env_goals"]
         self._pair_sampler.matched_control_prob = self.switch_kwargs["matched_control_prob"]
+        self._pair_sampler.match_twins = self.switch_kwargs["twin_episodes"]
         if self.switch_kwargs["anchor_coef"] > 0.0 and not self.policy.goal_anchored:
             raise ValueError(
                 "switch_kwargs['anchor_coef'] pulls a goal-anchored policy's subgoals toward the goal: set policy_kwargs "
@@ -456,7 +469,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     def _option_metric_keys(self) -> tuple[str, ...]:
         planned = ("planned_share",) if self.planner.proposes_subgoals else ()
         goal_driven: tuple[str, ...] = ()
-        if self.switch_kwargs["goal_episode_prob"] > 0.0:
+        if self._collects_goal_episodes:
             goal_driven = ("goal_episode_share", "goal_episode_success", "policy_episode_success")
         return (*super()._option_metric_keys(), *planned, *goal_driven)
 
@@ -469,7 +482,35 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
         self._apply_switches()
+        if self.switch_kwargs["twin_episodes"] and (reset_num_timesteps or self._last_obs is None):
+            self._seed_twin_episodes()
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
+    @property
+    def _collects_goal_episodes(self) -> bool:
+        """Whether some training episodes are driven by the goal as every subgoal (``goal_episode_prob`` or
+        ``twin_episodes``)."""
+        return self.switch_kwargs["goal_episode_prob"] > 0.0 or self.switch_kwargs["twin_episodes"]
+
+    def _seed_twin_episodes(self) -> None:
+        """``twin_episodes``: give each pair of envs (0 and 1, 2 and 3, ...) one seed stream for its episodes, just
+        before the env is reset, so that the two play the same episodes."""
+        assert self.env is not None
+        if self.n_envs % 2 != 0:
+            raise InvalidSetting(
+                "switch_kwargs['twin_episodes']",
+                f"switch_kwargs['twin_episodes'] runs the envs in pairs, but the env has {self.n_envs}: use an even "
+                "n_envs (e.g. 2), or twin_episodes=False",
+            )
+        if not all(self.env.env_is_wrapped(EpisodeSeeds)):
+            raise InvalidSetting(
+                "switch_kwargs['twin_episodes']",
+                "switch_kwargs['twin_episodes'] seeds the envs' episodes, which needs every env wrapped in "
+                "sb3_dipper.common.episode_seeds.EpisodeSeeds (make_vec_env(..., wrapper_class=EpisodeSeeds), or "
+                "env_wrapper: sb3_dipper.common.episode_seeds.EpisodeSeeds in the zoo's hyperparameters)",
+            )
+        for pair in range(self.n_envs // 2):
+            self.env.env_method("seed_episodes", int(self._rng.integers(2**62)), indices=[2 * pair, 2 * pair + 1])
 
     def learn(
         self: SelfDIPPER,
@@ -511,15 +552,16 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
             goal_rows = (self._rng.random(self.n_envs) < goal_subgoal_prob) & ~self.last_random_subgoals
             actions[goal_rows] = self._subgoal_actions(observation["desired_goal"])[goal_rows]
             self.last_planned &= ~goal_rows
-        if self.switch_kwargs["goal_episode_prob"] > 0.0 and self.num_timesteps >= self.learning_starts:
+        if self._collects_goal_episodes and self.num_timesteps >= self.learning_starts:
             actions = self._drive_goal_episodes(observation, actions)
         if self.planner.proposes_subgoals and self.num_timesteps >= self.learning_starts:
             self._option_metrics["planned_share"].extend(self.last_planned.astype(np.float64))
         return actions
 
     def _drive_goal_episodes(self, observation: DictObs, actions: np.ndarray) -> np.ndarray:
-        """``goal_episode_prob``: the goal is every subgoal of the envs whose episode :attr:`goal_episodes` marks (the
-        control, not explored and not planned), so that stored trajectories include whole control episodes."""
+        """``goal_episode_prob`` or ``twin_episodes``: the goal is every subgoal of the envs whose episode
+        :attr:`goal_episodes` marks (the control, not explored and not planned), so that stored trajectories include
+        whole control episodes."""
         if self.goal_episodes is None:
             self._draw_goal_episodes(np.ones(self.n_envs, dtype=bool))
         assert self.goal_episodes is not None
@@ -541,7 +583,11 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 self._option_metrics[key].append(float(success))
 
     def _draw_goal_episodes(self, starting: np.ndarray) -> None:
-        """Whether the envs of the mask ``starting`` have their next episode driven by the goal (``goal_episode_prob``)."""
+        """Whether the envs of the mask ``starting`` have their next episode driven by the goal: drawn with
+        ``goal_episode_prob``, or with ``twin_episodes`` the second env of each pair."""
+        if self.switch_kwargs["twin_episodes"]:
+            self.goal_episodes = np.arange(self.n_envs) % 2 == 1
+            return
         self.goal_episodes = self._drawn_episode_flags(self.goal_episodes, starting, self.switch_kwargs["goal_episode_prob"])
 
     def _lower_level_value(self, start_observations: DictObs, targets: np.ndarray) -> np.ndarray:
@@ -569,7 +615,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     ) -> None:
         assert self.option_env is not None and self.option_env.reached_obs is not None
         reached = self.option_env.reached_obs["achieved_goal"]
-        self.trajectory_buffer.add(start_obs, high_actions, reached, dones, goal_driven=self.goal_episodes)
+        seeds = np.array([info.get(EPISODE_SEED_KEY, -1) for info in infos], dtype=np.int64)
+        self.trajectory_buffer.add(
+            start_obs, high_actions, reached, dones, goal_driven=self.goal_episodes, episode_seeds=seeds
+        )
         self.planner.trajectories_finished(int(np.sum(dones)), self.trajectory_buffer, self._lower_level_value)
         if self.goal_episodes is not None:
             self._record_success_by_driver(dones, infos)
