@@ -200,6 +200,8 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (MAZE_FIXED, "PIPER", "planner-share-maze-baselines.csv", "/piper/"),
     (MAZE_FIXED, "DIPPER-No-V", "planner-share-maze-baselines.csv", "/dipper_nov/"),
     (MAZE_FIXED, "HIER", "planner-share-maze-baselines.csv", "/hier/"),
+    (MAZE, "HAC", "planner-share-rmaze-baselines.csv", "/hac/"),
+    (MAZE, "SAGA", "planner-share-rmaze-baselines.csv", "/saga/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
