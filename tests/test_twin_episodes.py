@@ -3,14 +3,17 @@ the goal as every subgoal, and preference pairs that compare the two trajectorie
 
 import gymnasium as gym
 import numpy as np
+import pandas as pd
 import pytest
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
 
 from sb3_dipper import DIPPER
 from sb3_dipper.common.episode_seeds import EPISODE_SEED_KEY, EpisodeSeeds
 from sb3_dipper.common.preferences import (
     PreferenceDataset,
     load_preference_data,
+    policy_preferred_share,
     sample_trajectory_pairs,
     save_preference_data,
     twin_control_trajectories,
@@ -131,9 +134,14 @@ def test_episode_seeds_round_trip_through_the_preference_file_and_an_older_file_
         load_preference_data(tmp_path / "bad.npz", restored, 10)
 
 
-def test_dipper_with_twin_episodes_compares_its_subgoals_with_the_goals_in_the_same_episodes():
+def test_dipper_with_twin_episodes_compares_its_subgoals_with_the_goals_in_the_same_episodes(tmp_path):
     model = tiny_model(DIPPER, short_maze(n_envs=2, wrapper_class=EpisodeSeeds), switch_kwargs=TWINS)
-    model.learn(400)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(400, log_interval=1)
+    logged = pd.read_csv(tmp_path / "progress.csv")
+    gaps, preferred = (logged[f"train/high_new_{key}"].dropna() for key in ("start_gap", "policy_preferred"))
+    assert len(gaps) > 0 and gaps.eq(0).all(), "twins start alike"
+    assert len(preferred) > 0 and preferred.between(0, 1).all()
     buffer = model.trajectory_buffer
     stored = slice(0, len(buffer))
     driven, seeds = buffer.goal_driven[stored], buffer.episode_seeds[stored]
@@ -183,3 +191,15 @@ def test_twin_episodes_resume_in_pairs_after_a_load(tmp_path):
     seeds = loaded.trajectory_buffer.episode_seeds[before : len(loaded.trajectory_buffer)]
     assert len(seeds) > 0 and (seeds >= 0).all()
     assert all((seeds == seed).sum() == 2 for seed in set(seeds[:-2].tolist())), "the new episodes are twins too"
+
+
+def test_policy_preferred_share_reads_each_control_pairs_label_from_the_policys_side():
+    pairs = sample_trajectory_pairs(twin_buffer(), 4, 0.0, SPACE, np.random.default_rng(0))
+    pairs.goal_driven = np.array([[False, True, False, True], [True, False, False, True]])
+    pairs.labels = np.array([1.0, 1.0, 0.0, 0.5], dtype=np.float32)
+    # Pair 0: the policy's is tau^1 and preferred (1); pair 1: it is tau^2 and rejected (0); pairs 2, 3 are no contrast.
+    assert policy_preferred_share(pairs) == 0.5
+    pairs.labels = np.array([0.5, 0.0, 1.0, 1.0], dtype=np.float32)
+    assert policy_preferred_share(pairs) == 0.75, "a tie counts half, tau^2 the policy's preferred counts whole"
+    pairs.goal_driven = np.zeros((2, 4), dtype=bool)
+    assert policy_preferred_share(pairs) is None

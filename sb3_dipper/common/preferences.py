@@ -368,6 +368,20 @@ def progress_labels(pairs: TrajectoryPairs) -> np.ndarray:
     return labels_from_scores(-final_goal_distances(pairs))
 
 
+def policy_preferred_share(pairs: TrajectoryPairs) -> float | None:
+    """Over the labelled pairs of a goal-driven trajectory and one that is not (``pairs.goal_driven``), how much the
+    labels prefer the one that is not, the policy's (a tie counts half); ``None`` where there is no such pair. Above
+    0.5 the policy's subgoals beat the goal's more often than not."""
+    if pairs.goal_driven is None:
+        return None
+    contrast = pairs.goal_driven[0] != pairs.goal_driven[1]
+    if not contrast.any():
+        return None
+    policy_first = ~pairs.goal_driven[0, contrast]
+    labels = pairs.labels[contrast]
+    return float(np.mean(np.where(policy_first, labels, 1.0 - labels)))
+
+
 def start_goal_distances(pairs: TrajectoryPairs) -> np.ndarray:
     """``(2, B)``: each trajectory's distance from its goal at its first step (Euclidean, in goal coordinates)."""
     first = pairs.observations

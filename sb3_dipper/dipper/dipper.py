@@ -40,6 +40,7 @@ from sb3_dipper.common.preferences import (
     TrajectoryPairs,
     TrajectoryPairSampler,
     flat_pair_observations,
+    policy_preferred_share,
     progress_labels,
     start_gaps,
 )
@@ -707,8 +708,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         """What the new labels carry, and how the policy does on pairs it has not trained on yet (logged as means over
         the options between two log dumps): the share of ties, how far apart the two trajectories of a pair started
         (:func:`~sb3_dipper.common.preferences.start_gaps`), the agreement with an oracle of the true progress
-        (:func:`~sb3_dipper.common.preferences.progress_labels`), the DPO accuracy, and the mean per-step
-        log-likelihood of the preferred and the rejected trajectories (both falling is likelihood displacement)."""
+        (:func:`~sb3_dipper.common.preferences.progress_labels`), how often a pair of the goal-driven control and the
+        policy prefers the policy's (:func:`~sb3_dipper.common.preferences.policy_preferred_share`), the DPO accuracy,
+        and the mean per-step log-likelihood of the preferred and the rejected trajectories (both falling is likelihood
+        displacement)."""
         labelled = pairs.select(np.flatnonzero(~np.isnan(pairs.labels)))
         if len(labelled) == 0:
             return
@@ -716,6 +719,9 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.logger.record_mean("train/high_new_start_gap", float(np.mean(start_gaps(labelled))))
         agreement = float(np.mean(labelled.labels == progress_labels(labelled)))
         self.logger.record_mean("train/high_label_progress_agreement", agreement)
+        policy_preferred = policy_preferred_share(labelled)
+        if policy_preferred is not None:
+            self.logger.record_mean("train/high_new_policy_preferred", policy_preferred)
         with th.no_grad():
             observations, actions, mask, labels = self._pair_tensors(labelled)
             log_probs = at_real_steps(self.policy.log_prob(observations, actions), mask)
