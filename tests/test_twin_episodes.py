@@ -203,3 +203,15 @@ def test_policy_preferred_share_reads_each_control_pairs_label_from_the_policys_
     assert policy_preferred_share(pairs) == 0.75, "a tie counts half, tau^2 the policy's preferred counts whole"
     pairs.goal_driven = np.zeros((2, 4), dtype=bool)
     assert policy_preferred_share(pairs) is None
+
+
+def test_twin_episodes_refuse_to_go_on_without_a_reset_on_an_env_not_seeded_in_pairs():
+    model = tiny_model(DIPPER, short_maze(n_envs=2, wrapper_class=EpisodeSeeds), switch_kwargs=TWINS)
+    model.learn(100)
+    model.learn(100, reset_num_timesteps=False)  # the same env goes on: its streams are set
+    model.set_env(short_maze(n_envs=2, seed=4, wrapper_class=EpisodeSeeds), force_reset=False)
+    with pytest.raises(InvalidSetting, match=r"not \(set_env\(env, force_reset=False\)\?\): call set_env\(env\)"):
+        model.learn(100, reset_num_timesteps=False)
+    model.set_env(short_maze(n_envs=2, seed=4, wrapper_class=EpisodeSeeds))
+    model.learn(100, reset_num_timesteps=False)
+    assert all(model.env.get_attr("episodes_seeded"))

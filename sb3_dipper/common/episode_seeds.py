@@ -34,6 +34,11 @@ class EpisodeSeeds(gym.Wrapper):
         self._stream: np.random.Generator | None = None
         self._episode_seed: int | None = None
 
+    @property
+    def episodes_seeded(self) -> bool:
+        """Whether a stream seeds the resets (:meth:`seed_episodes` was called)."""
+        return self._stream is not None
+
     def seed_episodes(self, seed: int) -> None:
         """Draw the seed of every following reset from a stream seeded with ``seed``."""
         self._stream = np.random.default_rng(seed)

@@ -483,8 +483,8 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         progress_bar: bool = False,
     ) -> tuple[int, BaseCallback]:
         self._apply_switches()
-        if self.switch_kwargs["twin_episodes"] and (reset_num_timesteps or self._last_obs is None):
-            self._seed_twin_episodes()
+        if self.switch_kwargs["twin_episodes"]:
+            self._seed_twin_episodes(resetting=reset_num_timesteps or self._last_obs is None)
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     @property
@@ -493,9 +493,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         ``twin_episodes``)."""
         return self.switch_kwargs["goal_episode_prob"] > 0.0 or self.switch_kwargs["twin_episodes"]
 
-    def _seed_twin_episodes(self) -> None:
+    def _seed_twin_episodes(self, resetting: bool) -> None:
         """``twin_episodes``: give each pair of envs (0 and 1, 2 and 3, ...) one seed stream for its episodes, just
-        before the env is reset, so that the two play the same episodes."""
+        before the env is reset (``resetting``), so that the two play the same episodes; a ``learn`` that goes on
+        without a reset needs the streams already set."""
         assert self.env is not None
         if self.n_envs % 2 != 0:
             raise InvalidSetting(
@@ -510,6 +511,15 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 "sb3_dipper.common.episode_seeds.EpisodeSeeds (make_vec_env(..., wrapper_class=EpisodeSeeds), or "
                 "env_wrapper: sb3_dipper.common.episode_seeds.EpisodeSeeds in the zoo's hyperparameters)",
             )
+        if not resetting:
+            if not all(self.env.get_attr("episodes_seeded")):
+                raise InvalidSetting(
+                    "switch_kwargs['twin_episodes']",
+                    "switch_kwargs['twin_episodes'] needs the envs' episodes seeded in pairs, but this learn goes on "
+                    "without a reset on an env whose episodes are not (set_env(env, force_reset=False)?): call "
+                    "set_env(env) or learn(..., reset_num_timesteps=True)",
+                )
+            return
         for pair in range(self.n_envs // 2):
             self.env.env_method("seed_episodes", int(self._rng.integers(2**62)), indices=[2 * pair, 2 * pair + 1])
 
