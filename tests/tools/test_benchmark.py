@@ -524,3 +524,16 @@ def test_profiles_measure_the_fused_adam_copies_beside_the_profiles(capsys):
     benchmark.run_profiles(profiles_args(fused_adam=True))
     rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| `{ENV_ID}`")]
     assert [row.split(" | ")[1] for row in rows] == ["SAC+HER", "SAC+HER (fused)"]
+
+
+def test_a_profile_chunk_trains_within_the_entrys_run_and_labels_on_its_schedule():
+    model = benchmark.run_model("dipper", ENV_ID)
+    assert model.run_budget == int(benchmark.load_entry("dipper", ENV_ID)["n_timesteps"])
+    benchmark.train_within_run(model, model.learning_starts + 400)
+    start = model.num_timesteps
+    benchmark.train_within_run(model, 200)
+    assert model._total_timesteps == model.run_budget
+    assert 200 <= model.num_timesteps - start < 200 + model.n_envs
+    # Labelled as a run of the entry's budget has it by now (a learn(steps) of its own ends its run every chunk and
+    # labels the most pairs a round takes at every option).
+    assert 0 < len(model.preferences) <= model.n_preference_pairs * model.num_timesteps / model.run_budget + 1

@@ -23,6 +23,7 @@ import numpy as np
 import torch as th
 from configs import torch_threads
 from plot import LABELS, label
+from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_dipper.common.files import write_bytes_atomically
 from sb3_dipper.zoo.run_config import ALGORITHMS, ZOO_KEYS, load_entry, make_env, make_model
@@ -30,6 +31,37 @@ from sb3_dipper.zoo.run_config import ALGORITHMS, ZOO_KEYS, load_entry, make_env
 from .report import REPO, RESULTS_DIR, command_line, write_section
 
 THROUGHPUT_LOWER = dict(batch_size=256, buffer_size=100_000, learning_starts=1000, gamma=0.95, tau=0.005)
+
+
+class StopAfterSteps(BaseCallback):
+    """Ends ``learn`` once it has trained ``steps`` more primitive steps."""
+
+    def __init__(self, steps: int) -> None:
+        super().__init__()
+        self.steps = steps
+        self.start = 0
+
+    def _on_training_start(self) -> None:
+        self.start = self.model.num_timesteps
+
+    def _on_step(self) -> bool:
+        return self.model.num_timesteps - self.start < self.steps
+
+
+def train_within_run(model: Any, steps: int) -> None:
+    """``steps`` more training steps of ``model`` as a part of its run of ``model.run_budget`` primitive steps (the
+    entry's ``n_timesteps``): ``learn`` is told the run's budget and stopped after ``steps``, so whatever follows the
+    run's progress is where such a run has it. A ``learn(steps)`` of its own would end its run every chunk: the
+    preference methods would label a round's most pairs at every option (their labels are due in step with the run),
+    which a run of the entry's budget labels a few at a time."""
+    model.learn(model.run_budget - model.num_timesteps, callback=StopAfterSteps(steps), reset_num_timesteps=False)
+
+
+def run_model(algo: str, env_id: str, overrides: dict[str, Any] | None = None) -> Any:
+    """The model of ``algo``'s entry for ``env_id`` (seed 0), with its run's budget as ``run_budget``."""
+    model, _, n_timesteps = make_model(algo, env_id, seed=0, overrides=overrides)
+    model.run_budget = n_timesteps  # type: ignore[attr-defined]
+    return model
 
 
 def throughput_models(env_id: str, net_arch: list[int]) -> dict[str, Any]:
@@ -41,7 +73,7 @@ def throughput_models(env_id: str, net_arch: list[int]) -> dict[str, Any]:
             overrides.update(policy_kwargs=dict(net_arch=net_arch), train_freq=1, gradient_steps=1)
         else:
             overrides.update(low_policy_kwargs=dict(net_arch=net_arch), train_freq=1, gradient_steps=1)
-        models[algo] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
+        models[algo] = run_model(algo, env_id, overrides)
     return models
 
 
@@ -89,15 +121,16 @@ def higher_level_seconds(models: dict[str, Any]) -> dict[str, dict[str, float]]:
 
 
 def training_chunks(models: dict[str, Any], steps: int) -> dict[str, Callable[[], Any]]:
-    """``steps`` more training steps of each model, as chunks for :func:`interleaved_seconds`."""
-    return {name: partial(model.learn, steps, reset_num_timesteps=False) for name, model in models.items()}
+    """``steps`` more training steps of each model within its run (:func:`train_within_run`), as chunks for
+    :func:`interleaved_seconds`."""
+    return {name: partial(train_within_run, model, steps) for name, model in models.items()}
 
 
 def run_throughput(args: argparse.Namespace) -> None:
     th.set_num_threads(torch_threads())
     models = throughput_models(args.env, args.net_arch)
     for model in models.values():
-        model.learn(THROUGHPUT_LOWER["learning_starts"] + args.steps)
+        train_within_run(model, THROUGHPUT_LOWER["learning_starts"] + args.steps)
     seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
     seconds = {algo: [chunk / args.steps for chunk in chunks] for algo, chunks in seconds.items()}
     per_step = {algo: statistics.median(values) for algo, values in seconds.items()}
@@ -204,22 +237,22 @@ def run_profiles(args: argparse.Namespace) -> None:
     variants = profile_variants(args.variant)
     rows, records = [], []
     for env_id in args.envs:
-        models = {algo: make_model(algo, env_id, seed=0)[0] for algo in args.algos}
+        models = {algo: run_model(algo, env_id) for algo in args.algos}
         if args.fused_adam:
             for algo in args.algos:
                 overrides = fused_adam_overrides(algo, env_id)
-                models[f"{algo}-{FUSED_ADAM}"] = make_model(algo, env_id, seed=0, overrides=overrides)[0]
+                models[f"{algo}-{FUSED_ADAM}"] = run_model(algo, env_id, overrides)
         for name, changes in variants.items():
             for algo in args.algos:
                 variant = variant_overrides(algo, env_id, changes)
                 if variant is not None:
-                    models[f"{algo}-{name}"] = make_model(algo, env_id, seed=0, overrides=variant)[0]
+                    models[f"{algo}-{name}"] = run_model(algo, env_id, variant)
             if not any(f"{algo}-{name}" in models for algo in args.algos):
                 raise ValueError(f"--variant {name}: none of {', '.join(args.algos)} takes {', '.join(sorted(changes))}")
         n_envs = models[args.algos[0]].n_envs
         env_rate = env_steps_per_second(env_id, n_envs, args.steps)
         for model in models.values():
-            model.learn(int(getattr(model, "learning_starts", 0)) + args.steps)
+            train_within_run(model, int(getattr(model, "learning_starts", 0)) + args.steps)
         spent = higher_level_seconds(models)
         seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
         rates = {algo: args.steps / statistics.median(values) for algo, values in seconds.items()}
@@ -276,8 +309,8 @@ def run_updates(args: argparse.Namespace) -> None:
     process, so the ratios share the machine's state (the absolute times do not travel).
     """
     th.set_num_threads(torch_threads())
-    model = make_model("dipper", args.env, seed=0)[0]
-    model.learn(int(getattr(model, "learning_starts", 0)) + args.warmup)
+    model = run_model("dipper", args.env)
+    train_within_run(model, int(getattr(model, "learning_starts", 0)) + args.warmup)
     chunks = {name: partial(repeat_call, update, args.updates) for name, update in update_steps(model).items()}
     seconds = interleaved_seconds(chunks, args.repeats)
     per_update = {name: statistics.median(values) / args.updates for name, values in seconds.items()}
