@@ -202,6 +202,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (MAZE_FIXED, "HIER", "planner-share-maze-baselines.csv", "/hier/"),
     (MAZE, "HAC", "planner-share-rmaze-baselines.csv", "/hac/"),
     (MAZE, "SAGA", "planner-share-rmaze-baselines.csv", "/saga/"),
+    (MAZE, "HIER", "planner-share-rmaze-baselines.csv", "/hier/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
