@@ -203,6 +203,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (MAZE, "HAC", "planner-share-rmaze-baselines.csv", "/hac/"),
     (MAZE, "SAGA", "planner-share-rmaze-baselines.csv", "/saga/"),
     (MAZE, "HIER", "planner-share-rmaze-baselines.csv", "/hier/"),
+    (MAZE, "PIPER", "planner-share-rmaze-baselines.csv", "/piper/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
