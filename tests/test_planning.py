@@ -869,7 +869,7 @@ def test_a_model_saved_before_switch_kwargs_loads_with_its_switches(tmp_path):
         tmp_path / "new.zip",
         tmp_path / "old.zip",
         "switch_kwargs",
-        newer_keys=("goal_episode_prob", "contrast_env_goals", "anchor_coef", "matched_control_prob"),
+        newer_keys=("goal_episode_prob", "contrast_env_goals", "anchor_coef", "matched_control_prob", "twin_episodes"),
     )
 
     with warnings.catch_warnings():

@@ -196,7 +196,8 @@ def test_value_gaps_on_real_steps_keep_the_random_stream_of_every_step(trained_d
 
 @pytest.mark.tools
 def test_the_updates_benchmark_prints_ratios_to_sb3_sac(trained_dipper, monkeypatch, capsys):
-    monkeypatch.setattr(benchmark, "make_model", lambda algo, env_id, seed: (trained_dipper, None, 0))
+    # The run's budget, which the warm-up trains within.
+    monkeypatch.setattr(benchmark, "make_model", lambda algo, env_id, seed, overrides=None: (trained_dipper, None, 10**6))
     benchmark.run_updates(argparse.Namespace(env="PointMazeFourRooms-v0", warmup=20, updates=2, repeats=1))
     rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and "---" not in line]
     assert [row[0] for row in rows[1:]] == [
