@@ -124,7 +124,7 @@ def twin_control_trajectories(
     driven = buffer.goal_driven[: len(buffer)]
     known = seeds >= 0
     controls = stored[driven & known]
-    # The latest stored control of each seed (a seed is drawn from 2**62 values: one control per seed in practice).
+    # One control per seed: a seed is drawn from 2**62 values, so it names one episode (of a stored pair, the later row).
     control_of_seed = dict(zip(seeds[controls].tolist(), controls.tolist(), strict=True))
     own = stored[~driven & known]
     twinned = own[np.isin(seeds[own], seeds[controls])]
