@@ -21,6 +21,7 @@ import pytest
 import yaml
 
 from zoo_scripts import benchmark, plot
+from zoo_scripts.benchmarking.run import ray_runtime_env
 
 SCRIPT = Path(benchmark.__file__)
 ENV_ID = "PointMazeFourRooms-v0"
@@ -432,6 +433,16 @@ def test_ray_runs(tmp_path, ray_head):
     row = next(line for line in result.stdout.splitlines() if line.startswith("| SAC+HER |"))
     assert re.search(r"\| - \| - \| - \| \d+ \|$", row), row
     assert (tmp_path / "learning.png").exists()
+    # Its task ran at the cluster's priority, not at the niceness of 15 Ray gives its workers (beside any other load, the
+    # training starved).
+    import ray
+
+    ray.init(address=ray_head, runtime_env=ray_runtime_env())
+    try:
+        niceness = ray.get(ray.remote(num_cpus=1)(lambda: os.nice(0)).remote())
+    finally:
+        ray.shutdown()
+    assert niceness == os.getpriority(os.PRIO_PROCESS, 0) == 0
 
 
 def profiles_args(**changes):

@@ -231,17 +231,29 @@ def local_results(jobs: list[tuple[Any, ...]], workers: int) -> Iterator[str]:
                 future.cancel()
 
 
+def ray_runtime_env() -> dict[str, Any]:
+    """The runtime environment of the runs' Ray tasks: this checkout's scripts on their path, this process's MuJoCo
+    backend and torch threads, and the niceness of the node's Ray processes (0 where started as usual)."""
+    # Workers unpickle learning_run (benchmarking.run), which imports configs and plot: the scripts' folder must be on
+    # their path.
+    python_path = [str(SCRIPTS), *filter(None, [os.environ.get("PYTHONPATH")])]
+    # Ray renices its task workers to 15 and the zoo process of a run inherits it, so beside any other load the training
+    # starves (a 12-second run took 2.2 minutes beside two trainings); Ray's own job supervisor asks for 0 the same way.
+    env_vars = {
+        "PYTHONPATH": os.pathsep.join(python_path),
+        "MUJOCO_GL": os.environ["MUJOCO_GL"],
+        "RAY_worker_niceness": "0",
+    }
+    if "SB3_DIPPER_THREADS" in os.environ:
+        env_vars["SB3_DIPPER_THREADS"] = os.environ["SB3_DIPPER_THREADS"]
+    return {"env_vars": env_vars}
+
+
 def ray_results(jobs: list[tuple[Any, ...]], address: str) -> Iterator[str]:
     """The runs as Ray tasks of one CPU on the cluster at ``address``; they write into ``--out`` themselves."""
     import ray
 
-    # Workers unpickle learning_run (benchmarking.run), which imports configs and plot: the scripts' folder must be on
-    # their path.
-    python_path = [str(SCRIPTS), *filter(None, [os.environ.get("PYTHONPATH")])]
-    env_vars = {"PYTHONPATH": os.pathsep.join(python_path), "MUJOCO_GL": os.environ["MUJOCO_GL"]}
-    if "SB3_DIPPER_THREADS" in os.environ:
-        env_vars["SB3_DIPPER_THREADS"] = os.environ["SB3_DIPPER_THREADS"]
-    ray.init(address=address, runtime_env={"env_vars": env_vars})
+    ray.init(address=address, runtime_env=ray_runtime_env())
     try:
         remote_run = ray.remote(num_cpus=1)(learning_run)
         pending = [remote_run.remote(*job) for job in jobs]
