@@ -204,6 +204,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (MAZE, "SAGA", "planner-share-rmaze-baselines.csv", "/saga/"),
     (MAZE, "HIER", "planner-share-rmaze-baselines.csv", "/hier/"),
     (MAZE, "PIPER", "planner-share-rmaze-baselines.csv", "/piper/"),
+    (MAZE, "DIPPER-No-V", "planner-share-rmaze-baselines.csv", "/dipper_nov/"),
 ]
 FINAL_MODEL_CASES = {
     "as_trained": "as trained",
