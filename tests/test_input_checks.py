@@ -74,6 +74,8 @@ BAD_SETTINGS = [
     ("high_gradient_steps", -1, "must be at least 0", None),
     ("reward_gradient_steps", -1, "must be at least 0", None),
     ("segment_length", 0, "must be at least 1", None),
+    ("segment_options", 0, "must be at least 1", None),
+    ("segment_options", 2.5, r"must be a whole number \(an integer >= 1\)", None),
     ("greedy_episode_interval", 0, "must be at least 1", None),
     ("n_hindsight_goals", -1, "must be at least 0", None),
     ("target_update_interval", 0, "must be at least 1", None),

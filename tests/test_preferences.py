@@ -4,7 +4,9 @@ pipeline that labels pairs on schedule and saves itself."""
 import numpy as np
 import pytest
 from gymnasium import spaces
+from stable_baselines3.common.env_util import make_vec_env
 
+from sb3_dipper import DIPPER
 from sb3_dipper.common.preference_pipeline import PreferencePipeline
 from sb3_dipper.common.preferences import (
     MAX_NEW_PAIRS_PER_ROUND,
@@ -14,11 +16,14 @@ from sb3_dipper.common.preferences import (
     SegmentPairSampler,
     TrajectoryPairs,
     TrajectoryPairSampler,
+    cut_option_segments,
     final_goal_distances,
+    final_path_distances,
     goal_distance_gains,
     labels_from_scores,
     load_preference_data,
     pairs_due,
+    path_distance_gains,
     progress_gain_labels,
     progress_labels,
     relabel_hindsight_actions,
@@ -29,7 +34,9 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
+from sb3_dipper.envs.fetch import MazeGeometry
 from sb3_dipper.labelling.sources import ProgressTieBreaker, preference_source_from
+from tests.conftest import tiny_model
 
 SPACE = SubgoalSpace(low=np.full(2, -5.0), high=np.full(2, 5.0), threshold=0.5)
 OBS_SPACE = spaces.Dict(
@@ -380,6 +387,109 @@ def test_the_gain_answers_ties_by_the_progress_each_trajectory_made_not_where_it
         preference_source_from({"kind": "progress", "measure": "start"}, script)
 
 
+def test_option_segments_are_consecutive_options_of_each_trajectory(buffer):
+    pairs = pairs_of(buffer, [0] * 40 + [3], [2] * 40 + [1])
+    pairs.labels[:] = 0.5
+    segments = cut_option_segments(pairs, 2, np.random.default_rng(0))
+    assert segments.mask.shape == (2, 41, 2) and segments.observations["achieved_goal"].shape == (2, 41, 2, 2)
+    starts_seen = set()
+    for side in (0, 1):
+        for pair in range(41):
+            # The start is the one whose two options the segment holds (trajectories 0, 2 and 1 have three options).
+            start = int(
+                np.flatnonzero(
+                    np.all(
+                        pairs.observations["achieved_goal"][side, pair]
+                        == segments.observations["achieved_goal"][side, pair, 0],
+                        axis=-1,
+                    )
+                )[0]
+            )
+            starts_seen.add(start)
+            window = slice(start, start + 2)
+            np.testing.assert_array_equal(
+                segments.next_achieved_goals[side, pair], pairs.next_achieved_goals[side, pair, window]
+            )
+            np.testing.assert_array_equal(segments.actions[side, pair], pairs.actions[side, pair, window])
+            np.testing.assert_array_equal(segments.reached_actions[side, pair], pairs.reached_actions[side, pair, window])
+            np.testing.assert_array_equal(
+                segments.observations["desired_goal"][side, pair], pairs.observations["desired_goal"][side, pair, window]
+            )
+    assert starts_seen == {0, 1}  # a three-option trajectory gives two windows of two, both drawn
+    # Trajectory 3 has two options: its segment is all of it.
+    np.testing.assert_array_equal(segments.mask[:, 40], [[True, True], [True, True]])
+    np.testing.assert_allclose(segments.next_achieved_goals[0, 40], [[1, 1], [3, 0.1]], atol=1e-6)
+    # One option longer than a trajectory: the segment keeps its options and masks the rest.
+    whole = cut_option_segments(pairs_of(buffer, [3], [0]), 3, np.random.default_rng(1))
+    np.testing.assert_array_equal(whole.mask[:, 0], [[True, True, False], [True, True, True]])
+    assert np.isnan(whole.labels).all() and segments.labels.tolist() == [0.5] * 41
+
+
+def test_the_sampler_cuts_segments_before_it_truncates_at_the_goal(buffer):
+    sampler = TrajectoryPairSampler(0.0, SPACE, goal_reached=goal_reached, segment_options=2)
+    assert sampler.pair_length == 2 and TrajectoryPairSampler(0.0, SPACE).pair_length is None
+    pairs = sampler.sample(buffer, 200, np.random.default_rng(3))
+    assert pairs.mask.shape == (2, 200, 2) and pairs.goal_driven.shape == (2, 200)
+    # A segment that reaches GOAL (3, 0) at its first option ends both segments of its pair there.
+    first_arrival = goal_reached(pairs.next_achieved_goals[:, :, 0], pairs.observations["desired_goal"][:, :, 0]).any(axis=0)
+    assert first_arrival.any() and not pairs.mask[:, first_arrival, 1].any()
+
+
+# A 3 x 3 maze of unit cells centred on the integer points, its middle row walled but for its right cell; the goal sits
+# in the bottom-left cell (2, 0). Along the free cells, (0, 0) is 6 steps from it, (0, 1) 5, (0, 2) 4.
+SMALL_MAZE = MazeGeometry(rows=3, cols=3, cell_size=1.0, origin=(0.0, 0.0), grip_height=0.0)
+SMALL_GRID = np.array([[0, 0, 0], [1, 1, 0], [0, 0, 0]], dtype=np.float32)
+MAZE_GOAL = np.array([2.0, 0.0], dtype=np.float32)
+
+
+def maze_pairs(starts: list[tuple[float, float]], ends: list[tuple[float, float]]) -> TrajectoryPairs:
+    """One pair of one-option trajectories on :data:`SMALL_MAZE`: ``starts[i]`` to ``ends[i]`` for tau^i."""
+    points = np.array(starts, dtype=np.float32).reshape(2, 1, 1, 2)
+    grid = np.broadcast_to(SMALL_GRID.ravel(), (2, 1, 1, 9))
+    observations = {
+        "observation": np.concatenate([points, np.zeros((2, 1, 1, 1), np.float32), grid], axis=-1),
+        "achieved_goal": points,
+        "desired_goal": np.broadcast_to(MAZE_GOAL, (2, 1, 1, 2)).copy(),
+    }
+    return TrajectoryPairs(
+        observations=observations,
+        actions=np.zeros((2, 1, 1, 2), np.float32),
+        reached_actions=np.zeros((2, 1, 1, 2), np.float32),
+        next_achieved_goals=np.array(ends, dtype=np.float32).reshape(2, 1, 1, 2),
+        mask=np.ones((2, 1, 1), dtype=bool),
+        labels=np.full(1, np.nan, dtype=np.float32),
+    )
+
+
+@pytest.mark.parametrize("spec", ["progress:path_gain", {"kind": "progress", "measure": "path_gain"}])
+def test_the_path_gain_prefers_the_way_round_the_wall_to_pressing_against_it(spec):
+    # tau^1 goes from (0, 0) to (0, 2), round toward the gate: 6 -> 4 steps along the free cells, though 2 -> 2.83 in
+    # a straight line. tau^2 goes from (0, 2) to (0, 0), pressing against the wall nearest the goal: 4 -> 6 steps,
+    # 2.83 -> 2 in a straight line. Neither reaches the goal, so the primitive-in-the-loop label is a tie.
+    pairs = maze_pairs([(0, 0), (0, 2)], [(0, 2), (0, 0)])
+    np.testing.assert_allclose(final_path_distances(pairs, SMALL_MAZE.path_distances), [[4.0], [6.0]])
+    np.testing.assert_allclose(path_distance_gains(pairs, SMALL_MAZE.path_distances), [[2.0], [-2.0]])
+    np.testing.assert_allclose(goal_distance_gains(pairs), [[2 - np.sqrt(8)], [np.sqrt(8) - 2]], atol=1e-6)
+    script = PrimitiveInTheLoopLabeler(goal_reached)
+    assert script.label(pairs).tolist() == [0.5]
+    assert preference_source_from("progress:gain", script).label(pairs).tolist() == [0.0]  # the straight line: tau^2
+    with pytest.raises(ValueError, match="has no maze geometry"):
+        preference_source_from(spec, script)  # no env to take a maze from
+    with pytest.raises(ValueError, match="needs path_distances"):
+        ProgressTieBreaker(script, measure="path_gain").label(pairs)
+    source = ProgressTieBreaker(script, measure="path_gain", path_distances=SMALL_MAZE.path_distances)
+    assert source.label(pairs).tolist() == [1.0]  # along the free cells: tau^1
+    assert source.label(maze_pairs([(0, 2), (0, 1)], [(0, 0), (0, 2)])).tolist() == [0.0]  # -2 against +1
+
+
+def test_the_path_gain_needs_an_env_with_a_maze(maze_env):
+    script = PrimitiveInTheLoopLabeler(goal_reached)
+    with pytest.raises(
+        ValueError, match=r"preference_source 'progress:path_gain' .*PointMazeFourRooms-v0.* has no maze geometry"
+    ):
+        preference_source_from("progress:path_gain", script, maze_env)
+
+
 # ---------------------------------------------------------------------------------------------------- the pipeline
 
 
@@ -480,3 +590,23 @@ def test_the_pipeline_saves_and_restores_itself_all_or_nothing(buffer, tmp_path)
     with pytest.raises(ValueError, match="trajectory_buffer_size=10"):
         untouched.load(tmp_path / "high.npz")
     assert len(smaller) == 0 and len(untouched.dataset) == 0
+
+
+# ------------------------------------------------------------------------------------------ option segments in DIPPER
+
+
+def test_dipper_labels_option_segments_by_the_path_gain_along_its_mazes_free_cells():
+    env = make_vec_env("FetchFourRoomMaze-v0", n_envs=1, seed=0, env_kwargs=dict(max_episode_steps=30))
+    model = tiny_model(DIPPER, env, segment_options=2, preference_source="progress:path_gain", n_preference_pairs=40)
+    maze = env.get_attr("maze")[0]
+    assert model.preference_pipeline.labeler.path_distances == maze.path_distances  # bound to the env's maze
+    model.learn(300)
+    pairs = model.preferences.all_pairs()
+    assert pairs is not None and len(pairs) > 0 and pairs.mask.shape[-1] == 2
+    # Where no segment reached the goal, the label is the path-gain oracle's.
+    reached = PrimitiveInTheLoopLabeler(model._goal_reached).scores(pairs)
+    untouched = (reached == 0).all(axis=0)
+    expected = labels_from_scores(path_distance_gains(pairs.select(np.flatnonzero(untouched)), maze.path_distances))
+    np.testing.assert_array_equal(pairs.labels[untouched], expected)
+    with pytest.raises(ValueError, match=r"segment_options=7 is longer than a higher-level trajectory \(6 options\)"):
+        tiny_model(DIPPER, env, segment_options=7)

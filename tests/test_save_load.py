@@ -156,9 +156,10 @@ def test_same_seed_same_first_thousand_steps(model_class):
 
 # What the ``dipper`` profiles of the paper's tasks turn on beyond the paper: progress labels, goal episodes, executed
 # subgoals, a planner steering training only, a goal-anchored policy with a floor on its log-std, the anchor's leash;
-# and pairs matched to the control (a candidate), whose draws come from the same seeded stream.
+# and pairs matched to the control and cut to option segments (candidates), whose draws come from the same seeded stream.
 PROFILE_SETTINGS = dict(
     preference_source="progress",
+    segment_options=2,
     switch_kwargs=dict(
         nll_coef=1.0,
         hindsight_actions=False,
@@ -197,6 +198,7 @@ def test_dippers_profile_settings_give_the_same_run_and_resume_from_a_checkpoint
     loaded.set_env(short_maze(n_envs=2, seed=3))
     loaded.load_replay_buffer(tmp_path / "buffer.pkl")
     assert_same_data(stored_data(loaded), stored_data(model))
+    assert loaded.segment_options == 2 and loaded.preferences.all_pairs().mask.shape[-1] == 2
     loaded.learn(100, reset_num_timesteps=False)
     assert loaded.num_timesteps == 700
 

@@ -34,6 +34,9 @@ DictObs = dict[str, np.ndarray]
 # What a sampler records of how it drew pairs (:class:`TrajectoryPairs`): diagnostics, not kept in a dataset or file.
 SAMPLER_RECORDS = ("goal_driven", "shared_goal")
 GoalReachedFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+# ``path_distances(observations, points, goals) -> (N,)``: how far each point lies from its goal along the free space
+# the observation describes (a maze's free cells), for observations ``(N, obs_dim)`` and points and goals ``(N, goal_dim)``.
+PathDistanceFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass
@@ -237,6 +240,35 @@ def sample_segment_pairs(
     )
 
 
+def cut_option_segments(pairs: TrajectoryPairs, length: int, rng: np.random.Generator) -> TrajectoryPairs:
+    """Each trajectory of each pair cut to ``length`` consecutive options, starting uniformly where they fit in it (a
+    trajectory of fewer options keeps them all, masked to ``length``); the pair keeps its goal.
+
+    A label of two whole trajectories tells which one ended better, not which of its subgoals did it; a label of two
+    segments of one or two options credits the subgoals that made the difference.
+    """
+    lengths = pairs.mask.sum(axis=-1)
+    starts = (rng.random(lengths.shape) * (np.maximum(lengths - length, 0) + 1)).astype(np.int64)
+    steps = starts[..., None] + np.arange(length)
+    mask = steps < lengths[..., None]
+    steps = np.minimum(steps, pairs.mask.shape[-1] - 1)
+
+    def cut(values: np.ndarray) -> np.ndarray:
+        index = steps.reshape(*steps.shape, *([1] * (values.ndim - 3)))
+        return np.take_along_axis(values, index, axis=2)
+
+    return TrajectoryPairs(
+        observations={key: cut(value) for key, value in pairs.observations.items()},
+        actions=cut(pairs.actions),
+        reached_actions=cut(pairs.reached_actions),
+        next_achieved_goals=cut(pairs.next_achieved_goals),
+        mask=mask & cut(pairs.mask),
+        labels=pairs.labels,
+        goal_driven=pairs.goal_driven,
+        shared_goal=pairs.shared_goal,
+    )
+
+
 def truncate_at_first_arrival(pairs: TrajectoryPairs, goal_reached: GoalReachedFn) -> TrajectoryPairs:
     """End both trajectories of a pair at the first option after which either of them reached the pair's goal.
 
@@ -286,6 +318,8 @@ class TrajectoryPairSampler(PairSampler):
     :param matched_control_prob: probability that a pair is a trajectory of the policy's and the goal-driven one that
         started nearest it
     :param match_twins: the goal-driven one of a matched pair is instead the one that played the same episode
+    :param segment_options: cut each trajectory of a pair to this many consecutive options
+        (:func:`cut_option_segments`), before the truncation at the goal (``None``: whole trajectories)
     """
 
     min_trajectories = 2
@@ -298,7 +332,10 @@ class TrajectoryPairSampler(PairSampler):
         contrast_env_goals: bool = True,
         matched_control_prob: float = 0.0,
         match_twins: bool = False,
+        segment_options: int | None = None,
     ) -> None:
+        self.segment_options = segment_options
+        self.pair_length = segment_options
         self.hindsight_goal_prob = hindsight_goal_prob
         self.subgoal_space = subgoal_space
         self.goal_reached = goal_reached
@@ -317,6 +354,8 @@ class TrajectoryPairSampler(PairSampler):
             self.matched_control_prob,
             self.match_twins,
         )
+        if self.segment_options is not None:
+            pairs = cut_option_segments(pairs, self.segment_options, rng)
         return pairs if self.goal_reached is None else truncate_at_first_arrival(pairs, self.goal_reached)
 
 
@@ -399,6 +438,32 @@ def goal_distance_gains(pairs: TrajectoryPairs) -> np.ndarray:
 def progress_gain_labels(pairs: TrajectoryPairs) -> np.ndarray:
     """Labels of an oracle of the progress each trajectory made: the one whose distance to the goal fell more wins."""
     return labels_from_scores(goal_distance_gains(pairs))
+
+
+def _path_distances_at(observations: DictObs, points: np.ndarray, path_distances: PathDistanceFn) -> np.ndarray:
+    """``(2, B)``: ``path_distances`` of ``points`` ``(2, B, goal_dim)`` from the pair's goals, in the free space that
+    ``observations`` (one step of each trajectory, ``(2, B, ...)``) describe."""
+    states, goals = observations["observation"], observations["desired_goal"]
+    distances = path_distances(
+        states.reshape(-1, states.shape[-1]), points.reshape(-1, points.shape[-1]), goals.reshape(-1, goals.shape[-1])
+    )
+    return np.asarray(distances, dtype=np.float64).reshape(points.shape[:2])
+
+
+def final_path_distances(pairs: TrajectoryPairs, path_distances: PathDistanceFn) -> np.ndarray:
+    """``(2, B)``: how far each trajectory's last real option ended from the pair's goal along the free space
+    (``path_distances``, e.g. a maze's :meth:`~sb3_dipper.envs.fetch.MazeGeometry.path_distances`)."""
+    observations, reached = last_options(pairs)
+    return _path_distances_at(observations, reached, path_distances)
+
+
+def path_distance_gains(pairs: TrajectoryPairs, path_distances: PathDistanceFn) -> np.ndarray:
+    """``(2, B)``: how much nearer the pair's goal along the free space each trajectory ended than it started. Where
+    walls stand between a trajectory and its goal, the straight distance rewards pressing against the wall nearest the
+    goal; the distance along the free cells rewards the way round it."""
+    first = {key: value[:, :, 0] for key, value in pairs.observations.items()}
+    start = _path_distances_at(first, first["achieved_goal"], path_distances)
+    return start - final_path_distances(pairs, path_distances)
 
 
 class PreferenceSource(ABC):

@@ -51,6 +51,7 @@ from sb3_dipper.common.validation import (
     as_choice,
     as_float,
     as_int,
+    as_optional_int,
     check_dict_keys,
     check_keyword_arguments,
     sparse_goal_reached_fn,
@@ -168,6 +169,10 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     :param n_preference_pairs: the label budget: pairs labelled over the whole run, spread over training
     :param pairs_per_batch: preference pairs per higher-level gradient step
     :param hindsight_goal_prob: probability that both trajectories of a pair share a goal achieved by one of them
+    :param segment_options: options per trajectory of a preference pair: each pair compares segments of this many
+        consecutive options cut from two stored trajectories, so that a label credits the subgoals that made the
+        difference (beyond the paper; ``None``: whole trajectories, the paper's). It sets the stored pairs' shape, so it
+        is fixed when the model is built
     :param random_subgoal_prob: probability of a uniformly random subgoal during training (exploration)
     :param high_gradient_steps: higher-level gradient steps per option
     :param switch_kwargs: the switches beyond the paper (:ref:`switches`; default: none on, the paper's DIPPER), a dict
@@ -287,6 +292,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         n_preference_pairs: int = 10_000,
         pairs_per_batch: int = 64,
         hindsight_goal_prob: float = 0.8,
+        segment_options: int | None = None,
         random_subgoal_prob: float = 0.2,
         high_gradient_steps: int = 1,
         switch_kwargs: dict[str, Any] | None = None,
@@ -351,6 +357,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.n_preference_pairs = n_preference_pairs
         self.pairs_per_batch = pairs_per_batch
         self.hindsight_goal_prob = hindsight_goal_prob
+        self.segment_options = segment_options
         self.high_gradient_steps = high_gradient_steps
         self.switch_kwargs = dict(switch_kwargs or {})
         self.planner_kwargs = dict(planner_kwargs or {})
@@ -368,6 +375,9 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         self.n_preference_pairs = as_int("n_preference_pairs", self.n_preference_pairs, 1)
         self.pairs_per_batch = as_int("pairs_per_batch", self.pairs_per_batch, 1)
         self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
+        self.segment_options = as_optional_int(
+            "segment_options", self.segment_options, 1, "None compares whole trajectories, the paper's pairs"
+        )
         self.switch_kwargs = checked_switch_kwargs(self.switch_kwargs)
         self.trajectory_buffer_size = as_int(
             "trajectory_buffer_size", self.trajectory_buffer_size, 2, "preference pairs need two stored trajectories"
@@ -391,7 +401,15 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
                 self._goal_reached,
                 label_budget=self.n_preference_pairs,
             )
-        self._pair_sampler = TrajectoryPairSampler(self.hindsight_goal_prob, self.subgoal_space)
+        if self.segment_options is not None and self.segment_options > self.high_steps:
+            raise InvalidSetting(
+                "segment_options",
+                f"segment_options={self.segment_options} is longer than a higher-level trajectory ({self.high_steps} "
+                f"options): use at most {self.high_steps}, or None for whole trajectories",
+            )
+        self._pair_sampler = TrajectoryPairSampler(
+            self.hindsight_goal_prob, self.subgoal_space, segment_options=self.segment_options
+        )
         self.preference_pipeline = PreferencePipeline(
             self._higher_level_trajectory_buffer(self.trajectory_buffer_size),
             self.n_preference_pairs,

@@ -24,9 +24,12 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_dipper.common.preferences import (
     MAX_NEW_PAIRS_PER_ROUND,
     GoalReachedFn,
+    PathDistanceFn,
     PreferenceSource,
     PrimitiveInTheLoopLabeler,
     TrajectoryPairs,
+    labels_from_scores,
+    path_distance_gains,
     progress_gain_labels,
     progress_labels,
 )
@@ -39,8 +42,9 @@ PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
 SPEC_HELP = (
     "a PreferenceSource, None (primitive-in-the-loop labels), 'primitive', 'progress' (ties broken by the distance to "
     "the goal at the end), 'progress:gain' (ties broken by how much nearer the goal each trajectory ended than it "
-    "started), 'noisy:P[:SEED]', 'people:DIRECTORY', 'mixed:DIRECTORY:FRACTION', or a dict with kind ('progress', "
-    "'noisy', 'people' or 'mixed') and the source's keyword arguments"
+    "started), 'progress:path_gain' (the same along a maze's free cells; Fetch mazes only), 'noisy:P[:SEED]', "
+    "'people:DIRECTORY', 'mixed:DIRECTORY:FRACTION', or a dict with kind ('progress', 'noisy', 'people' or 'mixed') "
+    "and the source's keyword arguments"
 )
 
 # How fast a person labels on the labelling page: about ten seconds a pair (look at both pictures against the goal,
@@ -87,30 +91,42 @@ class NoisyLabeler(PreferenceSource):
 class ProgressTieBreaker(PreferenceSource):
     """The scripted (primitive-in-the-loop) answer, with its ties answered by progress: of two trajectories that reached
     the goal equally often, the one that ended nearer to it is preferred (``measure="end"``), or the one that came
-    nearer to it than it started by more (``measure="gain"``).
+    nearer to it than it started by more (``measure="gain"``), or by more along the free space between walls
+    (``measure="path_gain"``, with ``path_distances``).
 
     Beyond the paper. Where the lower level seldom reaches the goal, nearly every primitive-in-the-loop label is a tie
     and carries nothing for the higher level to learn; the distance at the end still tells the pairs apart. The
     distance is measured in goal coordinates, so it is an oracle of the task's geometry, not of the lower level. On
     tasks whose starts and goals are drawn at random the two trajectories of a pair start apart, and the distance at
     the end prefers the one that began nearer its goal, whatever its subgoals did; the gain compares what each
-    trajectory achieved (on a fixed task both start alike and the two measures agree).
+    trajectory achieved (on a fixed task both start alike and the two measures agree). On a maze the straight
+    distance prefers a gripper pressed against the wall nearest the goal; the path gain prefers the way round it.
 
     :param script: the scripted labeller (default: the algorithm's primitive-in-the-loop labeller)
-    :param measure: ``"end"`` (:func:`~sb3_dipper.common.preferences.progress_labels`) or ``"gain"``
-        (:func:`~sb3_dipper.common.preferences.progress_gain_labels`)
+    :param measure: ``"end"`` (:func:`~sb3_dipper.common.preferences.progress_labels`), ``"gain"``
+        (:func:`~sb3_dipper.common.preferences.progress_gain_labels`) or ``"path_gain"``
+        (:func:`~sb3_dipper.common.preferences.path_distance_gains`)
+    :param path_distances: with ``"path_gain"``, how far points lie from their goals along the free space
+        (:data:`~sb3_dipper.common.preferences.PathDistanceFn`; default, given to an algorithm: its env's
+        ``maze.path_distances``)
     """
 
     MEASURES: ClassVar[dict[str, Callable[[TrajectoryPairs], np.ndarray]]] = {
         "end": progress_labels,
         "gain": progress_gain_labels,
     }
+    PATH_MEASURES = ("path_gain",)
 
-    def __init__(self, script: PreferenceSource | None = None, measure: str = "end") -> None:
-        if measure not in self.MEASURES:
-            raise ValueError(f"ProgressTieBreaker measure must be one of {sorted(self.MEASURES)}, got {measure!r}")
+    def __init__(
+        self, script: PreferenceSource | None = None, measure: str = "end", path_distances: PathDistanceFn | None = None
+    ) -> None:
+        if measure not in (*self.MEASURES, *self.PATH_MEASURES):
+            raise ValueError(
+                f"ProgressTieBreaker measure must be one of {sorted((*self.MEASURES, *self.PATH_MEASURES))}, got {measure!r}"
+            )
         self.script = script
         self.measure = measure
+        self.path_distances = path_distances
 
     def label(self, pairs: TrajectoryPairs) -> np.ndarray:
         if self.script is None:
@@ -119,8 +135,33 @@ class ProgressTieBreaker(PreferenceSource):
             )
         labels = np.asarray(self.script.label(pairs), dtype=np.float32).copy()
         ties = labels == 0.5
-        labels[ties] = self.MEASURES[self.measure](pairs.select(np.flatnonzero(ties)))
+        labels[ties] = self._progress_labels(pairs.select(np.flatnonzero(ties)))
         return labels
+
+    def _progress_labels(self, pairs: TrajectoryPairs) -> np.ndarray:
+        if self.measure in self.MEASURES:
+            return self.MEASURES[self.measure](pairs)
+        if self.path_distances is None:
+            raise ValueError(
+                "ProgressTieBreaker(measure='path_gain') needs path_distances: pass path_distances=..., or give it to "
+                "an algorithm on a maze env, whose maze.path_distances it takes"
+            )
+        return labels_from_scores(path_distance_gains(pairs, self.path_distances))
+
+
+def maze_path_distances(env: VecEnv | None) -> PathDistanceFn:
+    """The free-space distance of ``env``'s maze (``env.unwrapped.maze.path_distances``, the Fetch mazes), for
+    ``preference_source="progress:path_gain"``; a ``ValueError`` naming ``preference_source`` on an env without one."""
+    maze = env.get_attr("maze")[0] if env is not None and env.has_attr("maze") else None
+    path_distances = getattr(maze, "path_distances", None)
+    if not callable(path_distances):
+        env_id = queue_info(env, None)["env_id"]
+        raise ValueError(
+            "preference_source 'progress:path_gain' measures progress along a maze's free cells, and the env "
+            f"{'' if env_id is None else repr(env_id) + ' '}has no maze geometry (maze.path_distances; the Fetch mazes "
+            "have one): use 'progress' or 'progress:gain' on it"
+        )
+    return path_distances
 
 
 class QueuedPreferenceSource(PreferenceSource):
@@ -373,6 +414,8 @@ def preference_source_from(
     if isinstance(spec, ProgressTieBreaker) and spec.script is None:
         spec = copy.copy(spec)
         spec.script = script
+        if spec.measure in ProgressTieBreaker.PATH_MEASURES and spec.path_distances is None:
+            spec.path_distances = maze_path_distances(env)
     if isinstance(spec, QueuedPreferenceSource) or (isinstance(spec, NoisyLabeler) and spec.script is None):
         spec = copy.copy(spec)
         spec.script = spec.script or script
@@ -426,7 +469,7 @@ def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:
 def _parse_spec(text: str) -> dict[str, Any]:
     kind, _, rest = text.partition(":")
     try:
-        if kind == "progress" and (not rest or rest in ProgressTieBreaker.MEASURES):
+        if kind == "progress" and (not rest or rest in (*ProgressTieBreaker.MEASURES, *ProgressTieBreaker.PATH_MEASURES)):
             return {"kind": "progress", **({"measure": rest} if rest else {})}
         if kind == "noisy":
             noise, _, seed = rest.partition(":")

@@ -10,12 +10,13 @@ import pytest
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dipper import DIPPER
+from sb3_dipper.common.preferences import final_path_distances
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.envs.fetch import MazeGeometry
 from tests.conftest import tiny_model
 from tests.test_preferences import GOAL, OBS_SPACE, add_trajectory, pairs_of
 from zoo_scripts.research import label_agreement as label_agreement_script
-from zoo_scripts.research.label_agreement import final_path_distances, label_agreement
+from zoo_scripts.research.label_agreement import label_agreement
 
 SCRIPT = Path(__file__).resolve().parents[2] / "zoo_scripts" / "research" / "label_agreement.py"
 
@@ -58,7 +59,7 @@ def test_the_path_oracle_reads_each_trajectorys_last_option_and_layout(tmp_path,
     model = tiny_model(DIPPER, env, preference_source="progress").learn(500)
     pairs = model.preference_pipeline.sampler.sample(model.trajectory_buffer, 16, np.random.default_rng(0))
     maze = MazeGeometry()
-    distances = final_path_distances(pairs, maze)
+    distances = final_path_distances(pairs, maze.path_distances)
     last = pairs.mask.sum(axis=-1) - 1
     side, index = 1, 3
     step = last[side, index]

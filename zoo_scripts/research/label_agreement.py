@@ -29,8 +29,8 @@ import numpy as np
 
 from sb3_dipper.common.preferences import (
     TrajectoryPairs,
+    final_path_distances,
     labels_from_scores,
-    last_options,
     progress_gain_labels,
     progress_labels,
 )
@@ -42,17 +42,6 @@ from configs import collected_dipper, measure_pair_runs
 
 ORACLES = ("end", "gain", "path")
 COLUMNS = ("group", "share", "tie_share", *(f"{oracle}_{what}" for oracle in ORACLES for what in ("agreement", "decided")))
-
-
-def final_path_distances(pairs: TrajectoryPairs, maze: MazeGeometry) -> np.ndarray:
-    """``(2, B)``: how far along the maze's free cells each trajectory's last real option ended from the pair's goal."""
-    observations, reached = last_options(pairs)
-    distances = maze.path_distances(
-        observations["observation"].reshape(-1, observations["observation"].shape[-1]),
-        reached.reshape(-1, reached.shape[-1]),
-        observations["desired_goal"].reshape(-1, observations["desired_goal"].shape[-1]),
-    )
-    return distances.reshape(pairs.mask.shape[:2])
 
 
 def label_agreement(
@@ -102,7 +91,7 @@ def measure(
     env = model.get_env()
     assert env is not None
     maze = env.get_attr("maze")[0] if env.has_attr("maze") else None
-    path_distances = final_path_distances(pairs, maze) if isinstance(maze, MazeGeometry) else None
+    path_distances = final_path_distances(pairs, maze.path_distances) if isinstance(maze, MazeGeometry) else None
     return steps, label_agreement(pairs, labels, path_distances)
 
 
