@@ -189,6 +189,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "DIPPER-No-V", "planner-share-baselines.csv", "/dipper_nov/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
     (PUSH_FIXED, "HAC", "planner-share-push-fixed-baselines.csv", "/hac/"),
+    (PUSH_FIXED, "SAGA", "planner-share-push-fixed-baselines.csv", "/saga/"),
     (PNP, "HAC", "planner-share-pnp-random-baselines.csv", "/hac/"),
     (PNP, "PIPER", "planner-share-pnp-random-baselines.csv", "/piper/"),
     (PNP, "DIPPER-No-V", "planner-share-pnp-random-baselines.csv", "/dipper_nov/"),
