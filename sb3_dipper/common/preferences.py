@@ -334,7 +334,6 @@ class TrajectoryPairSampler(PairSampler):
         match_twins: bool = False,
         segment_options: int | None = None,
     ) -> None:
-        self.segment_options = segment_options
         self.pair_length = segment_options
         self.hindsight_goal_prob = hindsight_goal_prob
         self.subgoal_space = subgoal_space
@@ -354,8 +353,8 @@ class TrajectoryPairSampler(PairSampler):
             self.matched_control_prob,
             self.match_twins,
         )
-        if self.segment_options is not None:
-            pairs = cut_option_segments(pairs, self.segment_options, rng)
+        if self.pair_length is not None:
+            pairs = cut_option_segments(pairs, self.pair_length, rng)
         return pairs if self.goal_reached is None else truncate_at_first_arrival(pairs, self.goal_reached)
 
 

@@ -115,15 +115,14 @@ class ProgressTieBreaker(PreferenceSource):
         "end": progress_labels,
         "gain": progress_gain_labels,
     }
-    PATH_MEASURES = ("path_gain",)
+    #: every measure: those of :attr:`MEASURES` and ``"path_gain"``, which needs ``path_distances``
+    NAMES: ClassVar[tuple[str, ...]] = (*MEASURES, "path_gain")
 
     def __init__(
         self, script: PreferenceSource | None = None, measure: str = "end", path_distances: PathDistanceFn | None = None
     ) -> None:
-        if measure not in (*self.MEASURES, *self.PATH_MEASURES):
-            raise ValueError(
-                f"ProgressTieBreaker measure must be one of {sorted((*self.MEASURES, *self.PATH_MEASURES))}, got {measure!r}"
-            )
+        if measure not in self.NAMES:
+            raise ValueError(f"ProgressTieBreaker measure must be one of {sorted(self.NAMES)}, got {measure!r}")
         self.script = script
         self.measure = measure
         self.path_distances = path_distances
@@ -414,7 +413,7 @@ def preference_source_from(
     if isinstance(spec, ProgressTieBreaker) and spec.script is None:
         spec = copy.copy(spec)
         spec.script = script
-        if spec.measure in ProgressTieBreaker.PATH_MEASURES and spec.path_distances is None:
+        if spec.measure not in ProgressTieBreaker.MEASURES and spec.path_distances is None:
             spec.path_distances = maze_path_distances(env)
     if isinstance(spec, QueuedPreferenceSource) or (isinstance(spec, NoisyLabeler) and spec.script is None):
         spec = copy.copy(spec)
@@ -469,7 +468,7 @@ def label_queue_directory(spec: PreferenceSourceSpec) -> str | None:
 def _parse_spec(text: str) -> dict[str, Any]:
     kind, _, rest = text.partition(":")
     try:
-        if kind == "progress" and (not rest or rest in (*ProgressTieBreaker.MEASURES, *ProgressTieBreaker.PATH_MEASURES)):
+        if kind == "progress" and (not rest or rest in ProgressTieBreaker.NAMES):
             return {"kind": "progress", **({"measure": rest} if rest else {})}
         if kind == "noisy":
             noise, _, seed = rest.partition(":")
