@@ -680,7 +680,7 @@ def wait_until_serving(server: subprocess.Popen, port: int, seconds: float = 180
             time.sleep(0.2)
 
 
-def label_body(pair_id: object = 0, client: str = "x", answer: str = "left") -> bytes:
+def label_body(pair_id: object = 0, client: str = "x", answer: object = "left") -> bytes:
     return json.dumps({"pair_id": pair_id, "client": client, "answer": answer}).encode()
 
 
@@ -740,7 +740,20 @@ def test_request_bodies_are_small_json_objects_with_integer_pair_ids(served):
     status, reply = request_page(port, "POST", "/api/label", label_body(pair_id=True))
     assert status == 400 and "pair_id (int)" in json.loads(reply)["error"]
     assert request_page(port, "POST", "/api/label", label_body(pair_id=1.0))[0] == 400
+    # An answer that is no string (unhashable, so no key of ANSWERS) was a 500 with no message.
+    status, reply = request_page(port, "POST", "/api/label", label_body(answer={}))
+    assert status == 400 and "answer (one of" in json.loads(reply)["error"]
     assert LabelQueue(directory).answers().pair_ids.tolist() == []
+
+
+def test_a_damaged_queue_file_reaches_the_page_as_its_message(served):
+    """The page shows the server's error (its script retries); a damaged labels.npz was Werkzeug's bare 500 page."""
+    port, directory = served
+    queue = LabelQueue(directory)
+    queue.record_answer(0, 1.0)
+    save_npz(queue.labels_path, {**dict(np.load(queue.labels_path)), "label": np.array([2.0], np.float32)})
+    status, reply = request_page(port, "POST", "/api/next", b'{"client": "tab"}')
+    assert status == 500 and "labels.npz: label must hold 0, 0.5, 1 or NaN" in json.loads(reply)["error"]
 
 
 def test_the_page_never_runs_in_debug_mode_whatever_the_environment_says(tmp_path):

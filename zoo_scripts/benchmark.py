@@ -87,7 +87,6 @@ from __future__ import annotations
 import argparse
 import difflib
 import os
-import shutil
 import sys
 from pathlib import Path
 
@@ -163,6 +162,8 @@ from benchmarking.run import (
 )
 from configs import ALGORITHMS, ZOO_KEYS, load_entry, make_env, make_model, torch_threads
 from plot import LABELS, label
+
+from sb3_dipper.common.files import write_bytes_atomically
 
 # The parts of the benchmarks live in benchmarking/; their names stay importable from this script's module.
 __all__ = [
@@ -273,7 +274,7 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
         command = command_line("benchmark.py", sys.argv[1:])
         write_section(args.name, f"{description}\n\n{tables_text}\n\n{image}", command, markdown)
         # The CSV behind the table goes next to its figure, to be committed with it.
-        shutil.copyfile(out / f"{args.name}.csv", figure.with_suffix(".csv"))
+        write_bytes_atomically(figure.with_suffix(".csv"), (out / f"{args.name}.csv").read_bytes())
     print(f"{description}\n\n{tables_text}\n\nFigure: {figure}\nCSV: {out / f'{args.name}.csv'}")
     return tables, curves
 
@@ -281,6 +282,11 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
 def check_learning_arguments(args: argparse.Namespace, learning: argparse.ArgumentParser) -> None:
     """Refuse, before any run folder is made, the algorithms, tasks and overrides every run would fail on (``args``
     resolved by :func:`resolve_protocol`)."""
+    # A repeated value would start the same run twice at once (in one folder) and count its seed twice in the tables.
+    for flag, values in (("--algos", args.algos), ("--envs", args.envs), ("--seeds", args.seeds)):
+        repeated = sorted({str(value) for value in values if values.count(value) > 1})
+        if repeated:
+            learning.error(f"{flag} {' '.join(repeated)}: given more than once; name each once")
     unknown_algos = [algo for algo in args.algos if algo not in ALGORITHMS]
     if unknown_algos:
         known = " ".join(ALGORITHMS)
@@ -305,6 +311,7 @@ def main() -> None:
     throughput.add_argument("--steps", type=int, default=1000)
     throughput.add_argument("--repeats", type=int, default=5)
     throughput.add_argument("--net-arch", type=int, nargs="+", default=[256, 256])
+    throughput.add_argument("--write", action="store_true", help="write docs/benchmarks/throughput.json and its section")
     profiles = commands.add_parser("profiles", help="training steps/s at each task's CPU profile, vs the env and SAC+HER")
     profiles.add_argument("--envs", nargs="+", default=CPU_TASKS)
     profiles.add_argument("--algos", nargs="+", default=["dipper", "sac"])

@@ -127,7 +127,12 @@ function show(counts) {
 async function next() {
   const response = await fetch("api/next", {method: "POST", headers: {"Content-Type": "application/json"},
     body: JSON.stringify({client: client})});
-  const data = await response.json();
+  const data = await response.json().catch(() => ({error: "The page's server answered " + response.status + "."}));
+  if (!response.ok) {
+    document.getElementById("message").textContent = data.error + " Trying again in 10 s.";
+    setTimeout(next, 10000);
+    return;
+  }
   show(data.counts);
   current = data.pair_id;
   document.getElementById("pair-id").textContent = current === null ? "-" : current;
@@ -144,7 +149,7 @@ async function answer(choice) {
   busy = true;
   const response = await fetch("api/label", {method: "POST", headers: {"Content-Type": "application/json"},
     body: JSON.stringify({pair_id: current, client: client, answer: choice})});
-  const data = await response.json();
+  const data = await response.json().catch(() => ({error: "The page's server answered " + response.status + "."}));
   if (!response.ok) { document.getElementById("message").textContent = data.error; }
   busy = false;
   await next();
@@ -315,6 +320,11 @@ def create_app(directory: str | Path, show_skipped: bool = False, host: str = "1
     def json_error(error: HTTPException) -> tuple[Response, int]:
         return jsonify(error=error.description), error.code or 500
 
+    @app.errorhandler(ValueError)
+    def queue_error(error: ValueError) -> tuple[Response, int]:
+        # A damaged file of the queue: its message names the file and the fix, which the page shows.
+        return jsonify(error=str(error)), 500
+
     @app.get("/")
     def page() -> Response:
         return Response(PAGE, mimetype="text/html")
@@ -336,7 +346,7 @@ def create_app(directory: str | Path, show_skipped: bool = False, host: str = "1
         body = json_object()
         pair_id, client, answer = body.get("pair_id"), body.get("client"), body.get("answer")
         # bool is an int in Python: true would label pair 1.
-        if type(pair_id) is not int or not isinstance(client, str) or answer not in ANSWERS:
+        if type(pair_id) is not int or not isinstance(client, str) or not isinstance(answer, str) or answer not in ANSWERS:
             return jsonify(error=f"Send pair_id (int), client (str) and answer (one of {sorted(ANSWERS)})"), 400
         reply, status_code = server.answer(pair_id, client, answer)
         return jsonify(reply), status_code

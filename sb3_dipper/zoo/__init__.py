@@ -75,6 +75,8 @@ from sb3_dipper.zoo.resume import (
     RESUME_MODEL,
     STEPS_KEY,
     PauseCheckpointCallback,
+    check_resume_checkpoint,
+    check_resumed_evaluations,
     check_resumed_hyperparameters,
     checkpoint_steps,
     continue_evaluations,
@@ -84,12 +86,14 @@ from sb3_dipper.zoo.resume import (
     recorded_evaluations,
     remove_resume_checkpoint,
     replace_folder,
+    run_env_folder,
     saved_steps,
     set_aside_part,
 )
-from sb3_dipper.zoo.run_config import CONFIG_FILE, RecordedObject, as_recorded, recorded_hyperparameters
+from sb3_dipper.zoo.run_config import ARGS_FILE, CONFIG_FILE, RecordedObject, as_recorded, recorded_hyperparameters
 
 __all__ = [
+    "ARGS_FILE",
     "COMMANDS",
     "CONFIG_FILE",
     "CONVERTERS",
@@ -105,6 +109,8 @@ __all__ = [
     "RunControl",
     "as_recorded",
     "asks_for_help",
+    "check_resume_checkpoint",
+    "check_resumed_evaluations",
     "check_resumed_hyperparameters",
     "checkpoint_steps",
     "claim_run_folder",
@@ -126,6 +132,7 @@ __all__ = [
     "remove_resume_checkpoint",
     "replace_folder",
     "run_control_parser",
+    "run_env_folder",
     "sample_dipper_nov_params",
     "sample_dipper_params",
     "sample_dpo_flat_params",

@@ -21,11 +21,14 @@ from sb3_dipper.zoo.resume import (
     RESUME_FOLDER,
     RESUME_MODEL,
     PauseCheckpointCallback,
+    check_resume_checkpoint,
+    check_resumed_evaluations,
     check_resumed_hyperparameters,
     continue_evaluations,
     learn_resumed,
     recorded_evaluations,
     remove_resume_checkpoint,
+    run_env_folder,
     set_aside_part,
 )
 from sb3_dipper.zoo.run_config import yaml_entry
@@ -76,16 +79,24 @@ class RunControl:
     resume: Path | None = None
     label_page: tuple[str, int] | None = None
 
-    def check_resumable(self, env_name: str, hyperparameters: Mapping[str, Any]) -> None:
-        """With ``--resume``, refuse before anything changes a run that cannot continue as it was: other
-        hyperparameters than the run's own (:func:`check_resumed_hyperparameters`), or a damaged evaluation record.
+    def check_resumable(self, env_name: str, hyperparameters: Mapping[str, Any], evaluation_flags: Mapping[str, Any]) -> None:
+        """With ``--resume``, refuse before anything changes a run that cannot continue as it was: another env than
+        the run's, other hyperparameters or evaluation flags than its own (:func:`check_resumed_hyperparameters`,
+        :func:`check_resumed_evaluations`), a checkpoint without its buffers or statistics
+        (:func:`check_resume_checkpoint`), or a damaged evaluation record.
 
         :param env_name: the env's folder name in the run folder
         :param hyperparameters: the hyperparameters given, as rl-zoo3 read them
+        :param evaluation_flags: ``eval_freq`` and ``eval_episodes`` given, as rl-zoo3 records them in ``args.yml``
         """
         if self.resume is None:
             return
+        run_env_folder(self.resume, env_name)
         check_resumed_hyperparameters(self.resume, env_name, hyperparameters)
+        check_resumed_evaluations(self.resume, env_name, evaluation_flags)
+        # rl-zoo3 normalises for any `normalize` entry but False (a dict or a string of one included).
+        normalized = hyperparameters.get("normalize", False) not in (None, False)
+        check_resume_checkpoint(self.resume, env_name, normalized)
         recorded_evaluations(self.resume)
 
 
@@ -160,7 +171,8 @@ def install_experiment_manager(control: RunControl | None = None) -> None:
         def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
             hyperparams, saved_hyperparams = super().read_hyperparameters()
             # Before anything in the run folder changes (create_log_folder sets the last part's logs aside).
-            run_control.check_resumable(str(self.env_name), saved_hyperparams)
+            evaluation_flags = {"eval_freq": self.eval_freq, "eval_episodes": self.n_eval_episodes}
+            run_control.check_resumable(str(self.env_name), saved_hyperparams, evaluation_flags)
             return hyperparams, saved_hyperparams
 
         def create_log_folder(self) -> None:

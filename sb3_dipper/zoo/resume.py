@@ -29,7 +29,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from sb3_dipper.common.deprecation import in_new_form
 from sb3_dipper.common.files import read_npz, write_bytes_atomically
 from sb3_dipper.zoo.algorithms import ZOO_ALGORITHMS
-from sb3_dipper.zoo.run_config import CONFIG_FILE, as_recorded, recorded_hyperparameters
+from sb3_dipper.zoo.run_config import ARGS_FILE, CONFIG_FILE, as_recorded, recorded_hyperparameters
 
 STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv
 # A paused run's checkpoint: <run folder>/resume/model.zip and the files beside it.
@@ -159,6 +159,66 @@ def differing_hyperparameters(started: Mapping[str, Any], given: Mapping[str, An
     return differing
 
 
+def run_env_folder(run_folder: Path, env_name: str) -> Path:
+    """``<run>/<env>/``, where rl-zoo3 records the run's configuration; an error naming ``--env`` if the run has none.
+
+    :raises ValueError: the run folder has no folder for ``env_name`` (it trained another env, listed)
+    """
+    folder = run_folder / env_name
+    if folder.is_dir() or not run_folder.is_dir():
+        return folder
+    trained = sorted(path.name for path in run_folder.iterdir() if (path / CONFIG_FILE).is_file())
+    raise ValueError(
+        f"--resume {run_folder}: the run has no folder {env_name}/, so it did not train --env {env_name}"
+        + (f"; it trained {', '.join(trained)}: resume it with that --env." if trained else ".")
+    )
+
+
+def check_resume_checkpoint(run_folder: Path, env_name: str, normalized: bool) -> None:
+    """Refuse a resume checkpoint that lacks a file :class:`PauseCheckpointCallback` writes: rl-zoo3 loads the replay
+    buffer and the normalisation statistics only where they exist, so without them the run would go on silently from
+    an empty buffer or new statistics.
+
+    :param normalized: whether the run normalises its env (``normalize`` in its hyperparameters)
+    """
+    checkpoint = run_folder / RESUME_FOLDER
+    needed = [checkpoint / "replay_buffer.pkl"] + ([checkpoint / env_name / "vecnormalize.pkl"] if normalized else [])
+    missing = [str(path) for path in needed if not path.is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"--resume {run_folder}: the resume checkpoint lacks {', '.join(missing)}, which pausing writes beside "
+            f"{RESUME_MODEL}; without it the run would go on from an empty replay buffer or new normalisation "
+            "statistics. Restore the checkpoint whole from a copy of the run folder, or start a new run."
+        )
+
+
+def check_resumed_evaluations(run_folder: Path, env_name: str, given: Mapping[str, Any]) -> None:
+    """Refuse to resume a run with other evaluation flags than its own (recorded by rl-zoo3 in ``<env>/args.yml``): a
+    row of another ``--eval-episodes`` cannot join the run's evaluation record, and another ``--eval-freq`` would move
+    the resumed evaluations off the run's grid.
+
+    :param given: the flags of this command, by their names in ``args.yml`` (``eval_freq``, ``eval_episodes``)
+    """
+    args_file = run_folder / env_name / ARGS_FILE
+    try:
+        started = recorded_hyperparameters(args_file)
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            f"{args_file} is missing: rl-zoo3 writes the flags a run starts with there, and --resume checks the "
+            "evaluation flags given against them. Restore it from a copy of the run folder, or start a new run."
+        ) from None
+    differing = [
+        f"--{name.replace('_', '-')} {value} (the run's: {started.get(name)})"
+        for name, value in given.items()
+        if name in started and started[name] != value
+    ]
+    if differing:
+        raise ValueError(
+            f"--resume {run_folder}: {', '.join(differing)}. A resumed run evaluates as it started, so that its "
+            f"evaluations stay one record ({EVALUATIONS_FILE}); resume it with the run's flags, or start a new run."
+        )
+
+
 def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mapping[str, Any]) -> None:
     """Refuse to resume a run with hyperparameters (YAML entry, ``-params``, Optuna trial) other than its own.
 
@@ -235,7 +295,8 @@ def set_aside_part(run_folder: Path) -> None:
     if progress.exists() and progress.stat().st_size > 0:
         rows = pd.read_csv(progress)
         if STEPS_KEY in rows:
-            rows[rows[STEPS_KEY] <= checkpoint_steps(run_folder)].to_csv(progress, index=False)
+            kept = rows[rows[STEPS_KEY] <= checkpoint_steps(run_folder)]
+            write_bytes_atomically(progress, kept.to_csv(index=False).encode())
     checkpoint_time = (run_folder / RESUME_FOLDER / RESUME_MODEL).stat().st_mtime
     for monitor in part.glob("*.monitor.csv"):
         drop_episodes_after(monitor, checkpoint_time)

@@ -51,6 +51,7 @@ NAMESPACE = {"dict": dict, "nn": th.nn, "th": th, "HerReplayBuffer": HerReplayBu
 
 # What rl-zoo3 records in <run folder>/<env>/ when a run starts: its hyperparameters (and its flags in args.yml).
 CONFIG_FILE = "config.yml"
+ARGS_FILE = "args.yml"
 
 
 def yaml_entry(path: str | Path, env_id: str) -> dict[str, Any]:

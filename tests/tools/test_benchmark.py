@@ -319,12 +319,14 @@ def test_benchmarks_md_is_written_only_with_write(tmp_path, monkeypatch, capsys)
         (["--set", "beta=0.1)"], "--set beta=0.1): '0.1)' is not a Python expression"),
         (["--set", "preference_source=progress"], "quote a string"),
         (["--env-kwargs", "max_episode_steps"], "--env-kwargs takes key=value"),
+        (["--seeds", "0", "1", "0"], "--seeds 0: given more than once; name each once"),
+        (["--algos", "sac", "sac"], "--algos sac: given more than once"),
     ],
 )
 def test_learning_refuses_what_every_run_would_fail_on_before_making_a_folder(
     tmp_path, monkeypatch, capsys, arguments, message
 ):
-    """An unknown algorithm or task, or an override rl-zoo3 cannot read, fails every run after its start-up: the
+    """An unknown algorithm or task, a repeated value, or an override rl-zoo3 cannot read, fails every run: the
     command says so at once, naming the option, and makes no run folder."""
     out = tmp_path / "out"
     argv = ["benchmark.py", "learning", "--algos", "dipper", "--envs", ENV_ID, "--seeds", "0", "--out", str(out)]
@@ -548,3 +550,24 @@ def test_a_profile_chunk_trains_within_the_entrys_run_and_labels_on_its_schedule
     # Labelled as a run of the entry's budget has it by now (a learn(steps) of its own ends its run every chunk and
     # labels the most pairs a round takes at every option).
     assert 0 < len(model.preferences) <= model.n_preference_pairs * model.num_timesteps / model.run_budget + 1
+
+
+def test_throughput_writes_its_record_only_when_asked(tmp_path, monkeypatch, capsys):
+    """A quick ``throughput`` check must not overwrite the committed record and its section."""
+    from stable_baselines3 import SAC
+
+    profile = sys.modules[benchmark.run_throughput.__module__]
+    model = SAC("MlpPolicy", "Pendulum-v1", learning_starts=10, batch_size=8, policy_kwargs=dict(net_arch=[8]), seed=0)
+    model.run_budget = 1000
+    monkeypatch.setattr(profile, "throughput_models", lambda env_id, net_arch: {"sac": model})
+    monkeypatch.setitem(profile.THROUGHPUT_LOWER, "learning_starts", 10)
+    monkeypatch.setattr(profile, "RESULTS_DIR", tmp_path)
+    sections = []
+    monkeypatch.setattr(profile, "write_section", lambda name, body, command: sections.append(name))
+    args = argparse.Namespace(env="Pendulum-v1", steps=20, repeats=1, net_arch=[8], write=False)
+    benchmark.run_throughput(args)
+    assert "| SAC+HER |" in capsys.readouterr().out
+    assert not list(tmp_path.iterdir()) and not sections
+    benchmark.run_throughput(argparse.Namespace(**{**vars(args), "write": True}))
+    assert list(json.loads((tmp_path / "throughput.json").read_text())["median"]) == ["sac"]
+    assert sections == ["throughput"]

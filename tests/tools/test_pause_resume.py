@@ -25,8 +25,11 @@ from sb3_dipper.zoo import (
     RESUME_FOLDER,
     RESUME_MODEL,
     PauseCheckpointCallback,
+    check_resume_checkpoint,
+    check_resumed_evaluations,
     check_resumed_hyperparameters,
     continue_evaluations,
+    run_env_folder,
     saved_steps,
     set_aside_part,
     split_run_control,
@@ -260,6 +263,12 @@ def test_a_run_resumed_with_other_hyperparameters_or_a_damaged_evaluation_record
     assert "  learning_rate: started with 0.001, given 0.01\n" in refused.stderr
     assert "leave out --resume" in refused.stderr
     assert files_under(run) == before
+    # A row of 7 evaluation episodes cannot join the record's rows of 5 (numpy failed writing it and left the record
+    # holding its timesteps alone).
+    other_width = zoo_train(*resume, "-params", *SAC_PARAMS, "--eval-episodes", "7")
+    assert other_width.returncode != 0
+    assert "--eval-episodes 7 (the run's: 5). A resumed run evaluates as it started" in other_width.stderr
+    assert files_under(run) == before
     np.savez(run / "evaluations.npz", timesteps=np.array([100]), results=np.zeros((1, 2)), ep_lengths=np.full((1, 2), 200))
     truncate(run / "evaluations.npz")
     before = files_under(run)
@@ -267,6 +276,40 @@ def test_a_run_resumed_with_other_hyperparameters_or_a_damaged_evaluation_record
     assert damaged.returncode != 0
     assert f"Malformed evaluation record {run / 'evaluations.npz'}: not a complete npz archive" in damaged.stderr
     assert files_under(run) == before
+
+
+def test_a_checkpoint_without_its_buffer_or_statistics_and_another_env_are_refused(tmp_path):
+    """rl-zoo3 loads the replay buffer and the normalisation statistics only where they exist: a checkpoint copied
+    without them would train on from an empty buffer or new statistics. ``--resume`` with another ``--env`` than the
+    run's said that its config.yml was missing."""
+    run = tmp_path / "Pendulum-v1_1"
+    (run / RESUME_FOLDER / "Pendulum-v1").mkdir(parents=True)
+    write_config(run, "Pendulum-v1", {"gamma": 0.98})
+    buffer, statistics = run / RESUME_FOLDER / "replay_buffer.pkl", run / RESUME_FOLDER / "Pendulum-v1" / "vecnormalize.pkl"
+    buffer.write_bytes(b"buffer")
+    check_resume_checkpoint(run, "Pendulum-v1", normalized=False)
+    with pytest.raises(FileNotFoundError, match=f"the resume checkpoint lacks {re.escape(str(statistics))}, which pausing"):
+        check_resume_checkpoint(run, "Pendulum-v1", normalized=True)
+    statistics.write_bytes(b"statistics")
+    check_resume_checkpoint(run, "Pendulum-v1", normalized=True)
+    buffer.unlink()
+    with pytest.raises(FileNotFoundError, match=f"lacks {re.escape(str(buffer))},.* from an empty replay buffer"):
+        check_resume_checkpoint(run, "Pendulum-v1", normalized=True)
+
+    assert run_env_folder(run, "Pendulum-v1") == run / "Pendulum-v1"
+    with pytest.raises(ValueError, match=r"no folder MountainCar-v0/, .* it trained Pendulum-v1: resume it with that --env"):
+        run_env_folder(run, "MountainCar-v0")
+
+
+def test_the_evaluation_flags_of_a_resumed_run_are_compared_with_its_record(tmp_path):
+    (tmp_path / "Pendulum-v1").mkdir()
+    record = OrderedDict([("eval_episodes", 20), ("eval_freq", 15000), ("seed", 0)])
+    (tmp_path / "Pendulum-v1" / "args.yml").write_text(yaml.dump(record))
+    check_resumed_evaluations(tmp_path, "Pendulum-v1", {"eval_freq": 15000, "eval_episodes": 20})
+    with pytest.raises(ValueError, match=r"--eval-freq 10000 \(the run's: 15000\), --eval-episodes 5 \(the run's: 20\)"):
+        check_resumed_evaluations(tmp_path, "Pendulum-v1", {"eval_freq": 10000, "eval_episodes": 5})
+    with pytest.raises(FileNotFoundError, match=r"args.yml is missing: .*start a new run"):
+        check_resumed_evaluations(tmp_path, "FetchPush-v4", {"eval_freq": 15000})
 
 
 def write_config(run: Path, env_name: str, hyperparameters: dict) -> None:

@@ -134,9 +134,6 @@ def run_throughput(args: argparse.Namespace) -> None:
     seconds = interleaved_seconds(training_chunks(models, args.steps), args.repeats)
     seconds = {algo: [chunk / args.steps for chunk in chunks] for algo, chunks in seconds.items()}
     per_step = {algo: statistics.median(values) for algo, values in seconds.items()}
-    write_bytes_atomically(
-        RESULTS_DIR / "throughput.json", json.dumps({"seconds_per_step": seconds, "median": per_step}, indent=1).encode()
-    )
     rows = [f"| {LABELS[algo]} | {per_step[algo] * 1e3:.2f} | {per_step[algo] / per_step['sac']:.2f} |" for algo in models]
     body = (
         f"Seconds per primitive step on `{args.env}`, one env, lower networks {args.net_arch}, batch 256, one lower "
@@ -144,7 +141,10 @@ def run_throughput(args: argparse.Namespace) -> None:
         f"interleaved chunks of {args.steps} steps after warm-up, measured in one process.\n\n"
         "| algorithm | ms per step | ratio to SAC+HER |\n|---|---|---|\n" + "\n".join(rows)
     )
-    write_section("throughput", body, command_line("benchmark.py", sys.argv[1:]))
+    if args.write:
+        record = {"seconds_per_step": seconds, "median": per_step}
+        write_bytes_atomically(RESULTS_DIR / "throughput.json", json.dumps(record, indent=1).encode())
+        write_section("throughput", body, command_line("benchmark.py", sys.argv[1:]))
     print(body)
 
 
