@@ -124,10 +124,14 @@ function show(counts) {
   document.getElementById("labelled").textContent = counts.labelled;
   document.getElementById("waiting").textContent = counts.waiting;
 }
+// The JSON body of an answer; an error of its own if the server sent none (a proxy's page, a lost connection).
+async function reply(response) {
+  return response.json().catch(() => ({error: "The page's server answered " + response.status + "."}));
+}
 async function next() {
   const response = await fetch("api/next", {method: "POST", headers: {"Content-Type": "application/json"},
     body: JSON.stringify({client: client})});
-  const data = await response.json().catch(() => ({error: "The page's server answered " + response.status + "."}));
+  const data = await reply(response);
   if (!response.ok) {
     document.getElementById("message").textContent = data.error + " Trying again in 10 s.";
     setTimeout(next, 10000);
@@ -149,7 +153,7 @@ async function answer(choice) {
   busy = true;
   const response = await fetch("api/label", {method: "POST", headers: {"Content-Type": "application/json"},
     body: JSON.stringify({pair_id: current, client: client, answer: choice})});
-  const data = await response.json().catch(() => ({error: "The page's server answered " + response.status + "."}));
+  const data = await reply(response);
   if (!response.ok) { document.getElementById("message").textContent = data.error; }
   busy = false;
   await next();

@@ -174,6 +174,21 @@ def run_env_folder(run_folder: Path, env_name: str) -> Path:
     )
 
 
+def run_record(path: Path, what: str) -> dict[str, Any]:
+    """What rl-zoo3 recorded in ``path`` (``<run>/<env>/config.yml`` or ``args.yml``) when the run started.
+
+    :param what: what the file records, for the message if it is missing (``"hyperparameters"``, ``"flags"``)
+    :raises FileNotFoundError: there is no ``path``; the message names it and the fix
+    """
+    try:
+        return recorded_hyperparameters(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            f"{path} is missing: rl-zoo3 writes the {what} a run starts with there, and --resume checks the ones given "
+            "against them. Restore it from a copy of the run folder, or start a new run (without --resume)."
+        ) from None
+
+
 def check_resume_checkpoint(run_folder: Path, env_name: str, normalized: bool) -> None:
     """Refuse a resume checkpoint that lacks a file :class:`PauseCheckpointCallback` writes: rl-zoo3 loads the replay
     buffer and the normalisation statistics only where they exist, so without them the run would go on silently from
@@ -199,14 +214,7 @@ def check_resumed_evaluations(run_folder: Path, env_name: str, given: Mapping[st
 
     :param given: the flags of this command, by their names in ``args.yml`` (``eval_freq``, ``eval_episodes``)
     """
-    args_file = run_folder / env_name / ARGS_FILE
-    try:
-        started = recorded_hyperparameters(args_file)
-    except FileNotFoundError:
-        raise FileNotFoundError(
-            f"{args_file} is missing: rl-zoo3 writes the flags a run starts with there, and --resume checks the "
-            "evaluation flags given against them. Restore it from a copy of the run folder, or start a new run."
-        ) from None
+    started = run_record(run_folder / env_name / ARGS_FILE, "flags")
     differing = [
         f"--{name.replace('_', '-')} {value} (the run's: {started.get(name)})"
         for name, value in given.items()
@@ -230,13 +238,7 @@ def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mappin
     :param given: the hyperparameters of this command, as rl-zoo3 records them
     """
     config = run_folder / env_name / CONFIG_FILE
-    try:
-        started = recorded_hyperparameters(config)
-    except FileNotFoundError:
-        raise FileNotFoundError(
-            f"{config} is missing: rl-zoo3 writes the hyperparameters a run starts with there, and --resume checks the "
-            "ones given against them. Restore it from a copy of the run folder, or start a new run (without --resume)."
-        ) from None
+    started = run_record(config, "hyperparameters")
     # A run started with the lower level's bc_coef: 0.02 resumes with demo_kwargs: {bc_coef: 0.02}, the same setting.
     started, wanted = (
         in_new_form(hyperparameters, ZOO_ALGORITHMS.values()) for hyperparameters in (started, as_recorded(given))
