@@ -4,7 +4,8 @@ The maze is 9 x 9 cells of 1 m (outer walls included): four 3 x 3 rooms joined b
 episode starts at a random cell of the start room (bottom left by default) and the goal is a random cell of the
 opposite room (top right), both with gymnasium-robotics' +-0.25 m position noise. The ball needs about 150
 primitive steps at full speed along the shortest path, so a 200-step episode leaves little room for wandering: the
-gap a hierarchy must close (how flat SAC+HER and the hierarchies do here: BENCHMARKS.md, the fast maze).
+gap a hierarchy must close (what DIPPER reaches here: BENCHMARKS.md, the fast maze; every algorithm at a short
+budget: the research log of 2026-11-22).
 
 Differences from the upstream env, all chosen so the task is a standard SB3 goal env:
 
