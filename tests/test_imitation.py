@@ -187,6 +187,14 @@ def test_normalize_from_demos_keeps_the_demonstrations_statistics(model_class, m
     np.testing.assert_allclose(another.obs_rms["observation"].mean, expected_mean)
 
 
+def test_a_demo_path_given_as_a_pathlib_path_is_kept_as_its_string(maze_demos, maze_env, tmp_path):
+    model = tiny_model(HIER, maze_env, demo_kwargs=dict(demo_path=maze_demos, n_demos=2))
+    assert model.demo_kwargs["demo_path"] == str(maze_demos)
+    model.learn(60)
+    model.save(tmp_path / "model")
+    assert HIER.load(tmp_path / "model").demo_kwargs["demo_path"] == str(maze_demos)
+
+
 def test_normalize_from_demos_needs_demonstrations_and_vec_normalize(maze_demos, maze_env):
     needs_demos = r"demo_kwargs\['normalize_from_demos'\]=True .* give demo_kwargs\['demo_path'\] too"
     with pytest.raises(ValueError, match=needs_demos):
@@ -324,6 +332,27 @@ def test_the_demos_command_writes_dart_episodes(tmp_path, capsys):
     assert not np.array_equal(demonstrations.observations["observation"], clean.observations["observation"])
     with pytest.raises(SystemExit):
         main(["--env", "PointMazeFourRooms-v0", "--action-noise", "-1", "--out", str(out)])
+
+
+@pytest.mark.parametrize("n_episodes", ["0", "-3"])
+def test_the_demos_command_refuses_fewer_than_one_episode(n_episodes, tmp_path, capsys):
+    """The reported case: numpy's "need at least one array to concatenate", naming neither the flag nor the fix."""
+    from sb3_dipper.envs.demos import main
+
+    with pytest.raises(SystemExit) as exited:
+        main(["--env", "PointMazeFourRooms-v0", "--n-episodes", n_episodes, "--out", str(tmp_path / "demos.npz")])
+    assert exited.value.code == 2
+    assert f"--n-episodes must be at least 1 (the episodes to write), got {n_episodes}" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_the_demos_command_names_the_file_it_wrote(tmp_path, capsys):
+    """--out without .npz: the file is <out>.npz (numpy's rule), and the message named <out>, which does not exist."""
+    from sb3_dipper.envs.demos import main
+
+    main(["--env", "PointMazeFourRooms-v0", "--out", str(tmp_path / "mydemos")])
+    assert capsys.readouterr().out.rstrip().endswith(f" to {tmp_path / 'mydemos.npz'}")
+    assert [path.name for path in tmp_path.iterdir()] == ["mydemos.npz"]
 
 
 def test_auto_demonstrations_name_the_tasks_that_have_one():

@@ -22,6 +22,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from sb3_dipper import DAC, DIPPER, HIER, PIPER, RAPS, SACDemo
 from sb3_dipper.common.option_env import OptionVecEnv
 from sb3_dipper.common.preferences import TrajectoryPairs
+from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.envs import PointMazeReachController
 from tests.conftest import ALL_ALGORITHMS, HIERARCHICAL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 from zoo_scripts.configs import make_model
@@ -31,6 +32,7 @@ POSITIVE = "must be a finite number > 0"
 NON_NEGATIVE = "must be a finite number >= 0"
 DISCOUNT = r"must be a finite number in \(0, 1\]"
 PROBABILITY = r"must be a finite number in \[0, 1\]"
+ENTROPY_COEFFICIENT = r'must be .*"auto".*"auto_<initial value > 0>"'
 
 # DAC and SACDemo are flat SB3 SACs, where gamma = 0 (a bandit) is meaningful: [0, 1] there.
 FLAT_SACS = [DAC, SACDemo]
@@ -82,6 +84,20 @@ BAD_SETTINGS = [
     ("stats_window_size", 0, "must be at least 1", None),
     ("random_subgoal_prob", NAN, PROBABILITY, None),
     ("n_steps", 0, "must be at least 1", None),
+    ("learning_rate", -1e-3, POSITIVE, None),
+    ("low_learning_rate", "abc", POSITIVE, None),
+    ("reward_learning_rate", 0.0, POSITIVE, None),
+    ("discriminator_learning_rate", INF, POSITIVE, None),
+    ("ent_coef", -0.1, ENTROPY_COEFFICIENT, None),
+    ("high_ent_coef", "auto_-1", ENTROPY_COEFFICIENT, None),
+    ("high_ent_coef", "bogus", ENTROPY_COEFFICIENT, None),
+    # On/off settings: the string "False" would be on.
+    ("paper_compat", "False", "must be True or False, got 'False'", None),
+    ("high_her", "False", "must be True or False, got 'False'", None),
+    ("absorbing_states", "False", "must be True or False, got 'False'", None),
+    ("goal_conditioned_discriminator", "no", "must be True or False, got 'no'", None),
+    ("state_conditioned", "False", "must be True or False, got 'False'", None),
+    ("demo_path", "", "must be an npz file, a Minari dataset directory", None),
 ]
 
 # (demo_kwargs key, bad value, what the message says after demo_kwargs['key']), for every algorithm with demo_kwargs.
@@ -93,6 +109,8 @@ BAD_DEMO_SETTINGS = [
     ("bc_coef", NAN, NON_NEGATIVE),
     ("rl_coef", -1.0, NON_NEGATIVE),
     ("q_filter", "yes", "must be True or False, got 'yes'"),
+    ("demo_path", "", "must be an npz file, a Minari dataset directory, 'auto' or 'auto:dart<N>'"),
+    ("demo_path", 5, "must be an npz file, a Minari dataset directory, 'auto' or 'auto:dart<N>'"),
 ]
 
 # (switch_kwargs key, bad value, what the message says after switch_kwargs['key']), for DIPPER.
@@ -246,6 +264,15 @@ def test_integer_settings_given_as_strings_become_ints(env, model_class):
     assert (model.option_steps, model.learning_starts) == (5, 40)
 
 
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_learning_rates_and_entropy_coefficients_given_as_strings_become_numbers(env, model_class):
+    # YAML reads 1e-3 without !!float as a string.
+    model = any_tiny_model(model_class, env, learning_rate="1e-3")
+    assert model.learning_rate == 1e-3
+    if "ent_coef" in constructor_parameters(model_class):
+        assert any_tiny_model(model_class, env, ent_coef="0.05").ent_coef == 0.05
+
+
 @pytest.mark.parametrize("value", [2.5, "abc", True, None])
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_a_non_integer_for_an_integer_setting_is_refused_at_once(env, model_class, value):
@@ -290,6 +317,17 @@ def test_the_dicts_given_to_a_constructor_are_left_as_they_were(model_class):
 
 
 # ---------------------------------------------------------------------------------------------------- demo_kwargs
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+def test_normalize_from_demos_given_as_a_string_is_refused(env, model_class):
+    with pytest.raises(ValueError, match=r"demo_kwargs\['normalize_from_demos'\] must be True or False, got 'False'"):
+        any_tiny_model(model_class, env, demo_kwargs=dict(demo_path="auto", normalize_from_demos="False"))
+
+
+def test_the_planners_in_predict_given_as_a_string_is_refused(env):
+    with pytest.raises(ValueError, match=r"in_predict must be True or False, got 'False'"):
+        any_tiny_model(DIPPER, env, planner_kwargs=dict(mode="subgoal", in_predict="False"))
 
 
 @pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, SACDemo])
@@ -427,6 +465,54 @@ def test_an_unbounded_goal_space_with_distance_threshold_says_it_is_unbounded(mo
     assert "subgoal_space=SubgoalSpace(low, high, threshold)" in message and "register_subgoal_space" in message
 
 
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize(
+    ("name", "value", "message"),
+    [
+        ("replay_buffer_kwargs", dict(n_sampled_goal=-2), r"replay_buffer_kwargs\['n_sampled_goal'\] must be at least 0"),
+        (
+            "replay_buffer_kwargs",
+            dict(goal_selection_strategy="futur"),
+            r"replay_buffer_kwargs\['goal_selection_strategy'\] 'futur': choose one of",
+        ),
+        ("replay_buffer_kwargs", dict(n_sampled_goals=4), r"replay_buffer_kwargs got an unexpected key 'n_sampled_goals'"),
+        (
+            "low_level_kwargs",
+            dict(buffer_size=5),
+            r"low_level_kwargs\['buffer_size'\] is set by the hierarchy: use buffer_size",
+        ),
+        ("low_level_kwargs", dict(learning_rate=1e-4), r"low_level_kwargs\['learning_rate'\] .* use low_learning_rate"),
+        ("low_level_kwargs", dict(target_update_intervall=2), r"'target_update_intervall' \(from low_level_kwargs\); did you"),
+    ],
+)
+def test_the_lower_sacs_dicts_are_checked_naming_the_parameter(env, model_class, name, value, message):
+    """A negative n_sampled_goal would relabel every sampled transition; the others would fail inside SB3, naming it."""
+    with pytest.raises((ValueError, TypeError), match=message):
+        any_tiny_model(model_class, env, **{name: value})
+
+
+@pytest.mark.parametrize(
+    "model_class", [model for model in ALL_ALGORITHMS if "high_replay_buffer_kwargs" in constructor_parameters(model)]
+)
+def test_the_higher_her_buffers_kwargs_are_checked(env, model_class):
+    with pytest.raises(ValueError, match=r"high_replay_buffer_kwargs\['n_sampled_goal'\] must be at least 0"):
+        any_tiny_model(model_class, env, high_replay_buffer_kwargs=dict(n_sampled_goal=-1))
+
+
+@pytest.mark.parametrize("model_class", HIERARCHICAL_ALGORITHMS)
+@pytest.mark.parametrize(
+    ("subgoal_space", "message"),
+    [
+        (SubgoalSpace([-1, -1, -1], [1, 1, 1], 0.5), r"has 3 dimensions, but its subgoals control 2 entries"),
+        (SubgoalSpace([-1, -1], [1, 1], 0.5, indices=(0, 5)), r"indices \(0, 5\) reach beyond the env's achieved_goal"),
+        (spaces.Box(-1, 1, (2,)), "subgoal_space must be a sb3_dipper.common.subgoals.SubgoalSpace"),
+    ],
+)
+def test_a_subgoal_space_that_does_not_fit_the_env_is_refused_at_construction(env, model_class, subgoal_space, message):
+    with pytest.raises(ValueError, match=message):
+        any_tiny_model(model_class, env, subgoal_space=subgoal_space)
+
+
 # ---------------------------------------------------------------------------------------------------- observations
 
 
@@ -517,6 +603,21 @@ def test_a_misspelt_keyword_names_the_class_and_the_parameter_it_resembles(env, 
         any_tiny_model(model_class, env, learning_start=40)
     with pytest.raises(TypeError, match=rf"'colour'; see help\({model_class.__name__}\) for its parameters$"):
         any_tiny_model(model_class, env, colour="blue")
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_a_misspelt_keyword_given_to_load_is_refused_not_set_aside(saved_models, model_class):
+    """SB3's load sets every keyword as an attribute: a misspelt one would leave the setting meant at its saved value."""
+    path = saved_models / f"{model_class.__name__}.zip"
+    with pytest.raises(
+        TypeError,
+        match=rf"^{model_class.__name__} got an unexpected keyword argument 'learning_start' "
+        rf"\(from {model_class.__name__}.load\(.*\)\); did you mean 'learning_starts'\?$",
+    ):
+        model_class.load(path, learning_start=10)
+    # A parameter, and an attribute saved with the model, are set as SB3 sets them.
+    loaded = model_class.load(path, learning_starts=10, _n_updates=3)
+    assert (loaded.learning_starts, loaded._n_updates) == (10, 3)
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)

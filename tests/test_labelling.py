@@ -119,6 +119,12 @@ def test_pending_pairs_count_against_the_label_budget(tmp_path):
     assert np.isnan(labels[0]) and np.array_equal(labels[1:], SCRIPT_LABELER.label(random_pairs(4, seed=1))[1:])
 
 
+def test_reuse_labels_given_as_a_string_is_refused(tmp_path):
+    # "False" would be on: a restarted run would take the labels in the directory that it was told to leave.
+    with pytest.raises(ValueError, match="reuse_labels must be True or False, got 'False'"):
+        QueuedPreferenceSource(str(tmp_path), reuse_labels="False")
+
+
 def people_warnings(caught: list[warnings.WarningMessage]) -> list[str]:
     return [str(warning.message) for warning in caught if "asks people for" in str(warning.message)]
 

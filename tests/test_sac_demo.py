@@ -1,5 +1,7 @@
 """SACDemo: SB3's SAC without demonstrations; with them, the hierarchies' Q-filtered cloning on the env's own goals."""
 
+import shutil
+
 import numpy as np
 import pytest
 import torch as th
@@ -13,6 +15,7 @@ from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS
 from sb3_dipper.common.validation import InvalidSetting
 from sb3_dipper.envs.demos import expert_demonstrations
 from tests.conftest import short_maze
+from tests.test_save_load import rollout_actions
 
 MAZE = "PointMazeFourRooms-v0"
 SAC_DEMO_DEFAULTS = {key: value for key, value in DEFAULT_DEMO_KWARGS.items() if key != "normalize_from_demos"}
@@ -177,3 +180,17 @@ def test_settings_the_cloning_update_cannot_honour_are_refused_with_demonstratio
 def test_a_non_goal_env_is_refused():
     with pytest.raises(ValueError, match="SACDemo needs a goal-conditioned env"):
         SACDemo("MlpPolicy", "Pendulum-v1")
+
+
+def test_a_set_env_refused_for_moved_demonstrations_keeps_the_trained_networks(tmp_path, maze_demos):
+    """A model loaded without an env is rebuilt by set_env; the demonstrations gone, it keeps its trained networks."""
+    demo_path = shutil.copy(maze_demos, tmp_path / "demos.npz")
+    model = SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(demo_path=str(demo_path)), **TINY)
+    model.learn(100)
+    model.save(tmp_path / "model")
+    loaded = SACDemo.load(tmp_path / "model")
+    actions = rollout_actions(loaded, short_maze(seed=4))
+    shutil.move(demo_path, tmp_path / "moved.npz")
+    with pytest.raises(FileNotFoundError, match=r"demos\.npz"):
+        loaded.set_env(short_maze(seed=1))
+    np.testing.assert_array_equal(rollout_actions(loaded, short_maze(seed=4)), actions)

@@ -1,12 +1,14 @@
 """Every algorithm: save -> load(env=None) -> predict, resuming from a checkpoint with its buffers, and reproducible runs
 (as SB3's test_save_load.py and test_deterministic.py)."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch as th
 
-from sb3_dipper import DIPPER
-from tests.conftest import ALL_ALGORITHMS, any_tiny_model, short_maze, tiny_model
+from sb3_dipper import DAC, DIPPER, SACDemo
+from tests.conftest import ALL_ALGORITHMS, OPTION_ALGORITHMS, any_tiny_model, short_maze, tiny_model
 
 # The largest replay buffer a model loaded without an env allocates (PREDICT_ONLY_BUFFER_SIZE per env).
 PREDICT_ONLY_ROWS = 16
@@ -139,6 +141,33 @@ def test_a_checkpoint_with_buffers_resumes_where_it_stopped(model_class, tmp_pat
 
 
 # ---------------------------------------------------------------------------------------------------- determinism
+
+
+@pytest.mark.parametrize("model_class", [*OPTION_ALGORITHMS, SACDemo, DAC])
+def test_a_set_env_that_fails_partway_leaves_a_loaded_model_as_it_was(model_class, tmp_path, monkeypatch):
+    """A model loaded without an env is rebuilt for the env set_env gives it; a failure inside the rebuild (after fresh
+    networks were made) must leave the trained networks, the env and the predictions as they were."""
+    model = any_tiny_model(model_class, short_maze(n_envs=2))
+    model.learn(100)
+    model.save(tmp_path / "model")
+    loaded = model_class.load(tmp_path / "model")
+    parameters = copy.deepcopy(loaded.get_parameters())
+    actions = rollout_actions(loaded, short_maze(seed=4))
+    rebuild = model_class._setup_model
+
+    def rebuild_then_fail(self):
+        rebuild(self)
+        raise RuntimeError("refused after the rebuild")
+
+    monkeypatch.setattr(model_class, "_setup_model", rebuild_then_fail)
+    with pytest.raises(RuntimeError, match="refused after the rebuild"):
+        loaded.set_env(short_maze(n_envs=2, seed=1))
+    monkeypatch.undo()
+    assert loaded.env is None
+    assert_same_state(loaded.get_parameters(), parameters)
+    np.testing.assert_array_equal(rollout_actions(loaded, short_maze(seed=4)), actions)
+    loaded.set_env(short_maze(n_envs=2, seed=1))  # and the env can still be given
+    loaded.learn(50, reset_num_timesteps=False)
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)

@@ -81,6 +81,21 @@ def test_bad_element_spaces_are_refused_at_construction(overrides, message):
         element_space(**overrides)
 
 
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (dict(threshold=float("nan")), "threshold must be a finite number > 0, got nan"),
+        (dict(threshold=float("inf")), "threshold must be a finite number > 0, got inf"),
+        (dict(threshold="0.1"), "threshold must be a finite number > 0, got '0.1'"),
+        (dict(indices=(0, 0)), r"indices must be distinct entries of the achieved goal \(ints >= 0\), got \(0, 0\)"),
+        (dict(indices=(-1, 1)), r"indices must be distinct entries"),
+    ],
+)
+def test_bad_subgoal_spaces_are_refused_at_construction(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        SubgoalSpace(**{**dict(low=[-1.0, -1.0], high=[1.0, 1.0], threshold=0.1), **overrides})
+
+
 def test_the_goal_unit_map_is_to_unit_of_the_projected_goal():
     """A normalised goal x maps to to_unit(project(mean + std * x)): scale 2 std / span, shift 2 (mean - low) / span - 1."""
     space = SubgoalSpace(np.array([0.0, -1.0]), np.array([2.0, 1.0]), threshold=0.1, indices=(2, 0))

@@ -47,7 +47,7 @@ from sb3_dipper.common.hierarchical_policy import (
     SACPolicyLowLevel,
 )
 from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, DemoSAC, checked_demo_kwargs
-from sb3_dipper.common.loading import CheckedLoading
+from sb3_dipper.common.loading import CheckedLoading, unchanged_on_failure
 from sb3_dipper.common.low_level import (
     LevelLogger,
     SACLowLevel,
@@ -58,12 +58,17 @@ from sb3_dipper.common.low_level import (
     sac_torch_save_params,
 )
 from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransition
-from sb3_dipper.common.subgoals import SubgoalSpace, resolve_subgoal_space
+from sb3_dipper.common.subgoals import SubgoalSpace, check_subgoal_space, resolve_subgoal_space
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_entropy_coefficient,
     as_float,
     as_int,
+    as_learning_rate,
     as_optional_int,
+    check_keyword_arguments,
+    checked_her_kwargs,
     policy_class_and_goal_env,
 )
 
@@ -103,7 +108,8 @@ class HierarchicalAlgorithm(CheckedLoading):
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs (``n_sampled_goal``, ``goal_selection_strategy``)
     :param low_learning_rate: learning rate of the lower SAC
     :param low_policy_kwargs: ``policy_kwargs`` of the lower SAC (for example ``net_arch``)
-    :param low_level_kwargs: any other keyword argument of the lower ``SAC``
+    :param low_level_kwargs: any other keyword argument of the lower ``SAC`` (one that a parameter here sets, such as
+        ``buffer_size``, is refused, naming that parameter)
     :param random_subgoal_prob: probability that a subgoal is drawn uniformly at random during training
     :param demo_kwargs: the lower level's Q-filtered behaviour cloning of demonstrations (see
         :mod:`sb3_dipper.common.imitation`; default: none), a dict with the keys
@@ -260,6 +266,10 @@ class HierarchicalAlgorithm(CheckedLoading):
         self.gamma = as_float("gamma", self.gamma, 0.0, 1.0, low_open=True)
         self.random_subgoal_prob = as_float("random_subgoal_prob", self.random_subgoal_prob, 0.0, 1.0)
         self.greedy_episode_prob = as_float("greedy_episode_prob", self.greedy_episode_prob, 0.0, 1.0)
+        self.low_learning_rate = as_learning_rate("low_learning_rate", self.low_learning_rate)
+        self.ent_coef = as_entropy_coefficient("ent_coef", self.ent_coef)
+        self.replay_buffer_kwargs = checked_her_kwargs("replay_buffer_kwargs", self.replay_buffer_kwargs)
+        check_low_level_kwargs(self.low_level_kwargs)
         self.demo_kwargs = checked_demo_kwargs(self.demo_kwargs)
 
     def _setup_model(self) -> None:
@@ -272,6 +282,7 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
             self._warn_if_options_outlast_episodes()
         assert self.subgoal_space is not None, "a saved model always carries its subgoal space"
+        check_subgoal_space(self.subgoal_space, self.observation_space)
         cloning = self.demo_kwargs["demo_path"] is not None
         demonstrations = self._load_demonstrations() if cloning and self.env is not None else None
         if demonstrations is not None and self.demo_kwargs["normalize_from_demos"]:
@@ -724,6 +735,7 @@ class HierarchicalAlgorithm(CheckedLoading):
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return sac_torch_save_params(self.lower, "lower")
 
+    @unchanged_on_failure
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env`` (same spaces, number of envs and time limit): the next ``learn`` runs on ``env``.
 
@@ -785,6 +797,43 @@ class HierarchicalAlgorithm(CheckedLoading):
 
         The returned step only assigns what was read, so it cannot fail half-way.
         """
+
+
+# The lower SAC's settings that the hierarchy gives it itself, and the parameter of the hierarchy that sets each.
+LOWER_SAC_SETTINGS = {
+    "policy": "low_policy_kwargs (the lower policy is SB3's MultiInputPolicy)",
+    "env": "the hierarchy's env",
+    "learning_rate": "low_learning_rate",
+    "buffer_size": "buffer_size",
+    "learning_starts": "learning_starts (the hierarchy's: the lower level trains from then on)",
+    "batch_size": "batch_size",
+    "tau": "tau",
+    "gamma": "gamma",
+    "train_freq": "train_freq",
+    "gradient_steps": "gradient_steps",
+    "ent_coef": "ent_coef",
+    "replay_buffer_class": "replay_buffer_kwargs (the lower buffer is SB3's HerReplayBuffer)",
+    "replay_buffer_kwargs": "replay_buffer_kwargs",
+    "policy_kwargs": "low_policy_kwargs",
+    "device": "device",
+    "demo_share": "demo_kwargs['demo_share']",
+    "bc_coef": "demo_kwargs['bc_coef']",
+    "rl_coef": "demo_kwargs['rl_coef']",
+    "q_filter": "demo_kwargs['q_filter']",
+    "demonstrations": "demo_kwargs['demo_path']",
+}
+
+
+def check_low_level_kwargs(low_level_kwargs: Mapping[str, Any]) -> None:
+    """Refuse a key of ``low_level_kwargs`` that the hierarchy sets itself (naming the parameter that does) or that
+    neither SB3's SAC nor the lower level's cloning (``target_q_bounds``) takes (naming the closest)."""
+    for key in low_level_kwargs:
+        if key in LOWER_SAC_SETTINGS:
+            raise InvalidSetting(
+                "low_level_kwargs", f"low_level_kwargs[{key!r}] is set by the hierarchy: use {LOWER_SAC_SETTINGS[key]}"
+            )
+    sac_settings = {key: value for key, value in low_level_kwargs.items() if key != "target_q_bounds"}
+    check_keyword_arguments(SAC, sac_settings, "low_level_kwargs")
 
 
 def has_finished_episode(buffer: ReplayBuffer | None) -> bool:

@@ -33,7 +33,14 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_dipper.common.demonstrations import Demonstrations
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
-from sb3_dipper.common.validation import InvalidSetting, as_bool, as_float, as_optional_int, check_dict_keys
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_bool,
+    as_demo_path,
+    as_float,
+    as_optional_int,
+    check_dict_keys,
+)
 
 # The demonstration settings of a hierarchical algorithm's lower level (its ``demo_kwargs``), with their defaults; SACDemo
 # takes them too, but normalize_from_demos.
@@ -66,6 +73,9 @@ def checked_demo_kwargs(demo_kwargs: Mapping[str, Any], keys: Collection[str] = 
         settings["bc_coef"] = as_float("demo_kwargs['bc_coef']", settings["bc_coef"], 0.0, reason="it weighs a loss")
         settings["rl_coef"] = as_float("demo_kwargs['rl_coef']", settings["rl_coef"], 0.0, reason="it weighs a loss")
         settings["q_filter"] = as_bool("demo_kwargs['q_filter']", settings["q_filter"])
+        settings["demo_path"] = as_demo_path("demo_kwargs['demo_path']", settings["demo_path"])
+        if "normalize_from_demos" in settings:
+            settings["normalize_from_demos"] = as_bool("demo_kwargs['normalize_from_demos']", settings["normalize_from_demos"])
     except InvalidSetting as error:
         # The parameter is demo_kwargs: load names it in its advice (load(path, demo_kwargs=...)).
         raise InvalidSetting("demo_kwargs", str(error)) from None

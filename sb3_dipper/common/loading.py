@@ -27,12 +27,13 @@
 from __future__ import annotations
 
 import base64
+import functools
 import io
 import json
 import pathlib
 import pickletools
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
 import torch as th
@@ -52,9 +53,40 @@ from sb3_dipper.common.deprecation import (
     taking_deprecated_parameters,
 )
 from sb3_dipper.common.files import save_model_atomically
-from sb3_dipper.common.validation import InvalidSetting, as_int, check_keyword_arguments, constructor_parameters
+from sb3_dipper.common.validation import (
+    InvalidSetting,
+    as_int,
+    as_learning_rate,
+    check_keyword_arguments,
+    constructor_parameters,
+)
 
 SelfCheckedLoading = TypeVar("SelfCheckedLoading", bound="CheckedLoading")
+
+
+SetEnv = TypeVar("SetEnv", bound=Callable[..., None])
+
+
+def unchanged_on_failure(set_env: SetEnv) -> SetEnv:
+    """Make a model's ``set_env`` all or nothing: if it raises, the model's attributes are put back as they were.
+
+    ``set_env`` on a model loaded without an env rebuilds it for the env (``_setup_model``) around its networks; a
+    check that fails partway (the demonstrations moved, a dense reward) must not leave freshly initialised networks in
+    place of the trained ones. The rebuild assigns new objects (networks, buffers, option layer) and mutates none of
+    the old ones, so the old attributes are the old model.
+    """
+
+    @functools.wraps(set_env)
+    def all_or_nothing(self: Any, *args: Any, **kwargs: Any) -> None:
+        attributes = dict(self.__dict__)
+        try:
+            set_env(self, *args, **kwargs)
+        except BaseException:
+            self.__dict__.clear()
+            self.__dict__.update(attributes)
+            raise
+
+    return all_or_nothing  # type: ignore[return-value]
 
 
 def saved_data_fields(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str, Any]:
@@ -306,6 +338,7 @@ class CheckedLoading(BaseAlgorithm):
         fold_saved_parameters(self, self.deprecated_parameters)
         # SB3's BaseAlgorithm keeps this setting under a private name.
         self._stats_window_size = as_int("stats_window_size", self._stats_window_size, 1)
+        self.learning_rate = as_learning_rate("learning_rate", self.learning_rate)
 
     def save(self, path: Any, exclude: Any = None, include: Any = None) -> None:
         """SB3's ``save``; the data also names the saving class, so that loading with another class fails clearly.
@@ -327,7 +360,8 @@ class CheckedLoading(BaseAlgorithm):
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfCheckedLoading:
-        """SB3's ``load``; refuses a file another algorithm saved, a setting the constructor would refuse (from the file or
+        """SB3's ``load``; refuses a file another algorithm saved, a keyword that is neither a parameter nor a saved
+        attribute (a misspelt one would change nothing), a setting the constructor would refuse (from the file or
         given here), and an env whose time limit is not the model's episode length (pass ``max_episode_steps=`` the
         env's limit to rebuild the model for the env's episodes). A dict parameter given here that holds deprecated
         parameters (``demo_kwargs``) replaces the saved one's keys, not the whole dict.
@@ -340,6 +374,10 @@ class CheckedLoading(BaseAlgorithm):
         # parameter, with an AssertionError or a KeyError.
         if saved_by is None and fields and (error := _other_librarys_file(cls, path, fields)) is not None:
             raise error
+        # SB3 sets every keyword as an attribute: one that is neither a parameter nor a saved attribute (a misspelt
+        # learning_starts) would change nothing, silently.
+        unknown = {name: value for name, value in kwargs.items() if name not in fields}
+        check_keyword_arguments(cls, unknown, f"{cls.__name__}.load({path})")
         kwargs = cls._with_deprecated_parameters_moved(fields, kwargs)
         for name in constructor_parameters(cls):
             if name.endswith("ent_coef") and name in kwargs and name in fields:

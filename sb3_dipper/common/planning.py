@@ -30,7 +30,7 @@ import numpy as np
 
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.trajectories import TrajectoryBuffer
-from sb3_dipper.common.validation import as_int, as_optional_float
+from sb3_dipper.common.validation import as_bool, as_int, as_optional_float
 
 if TYPE_CHECKING:
     from sb3_dipper.common.low_level import SubgoalNormalizer
@@ -228,6 +228,7 @@ class SubgoalPlanner:
     ) -> None:
         if mode not in PLANNING_MODES:
             raise ValueError(f"Unknown planning mode {mode!r}: choose one of {PLANNING_MODES}")
+        in_predict = as_bool("in_predict", in_predict)
         if not in_predict and mode != "subgoal":
             raise ValueError(
                 f"in_predict=False needs mode='subgoal' (the planner replaces the policy's proposals in training only), "

@@ -10,6 +10,7 @@ Env modules declare their space, either as an attribute ``subgoal_space`` of the
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
@@ -19,6 +20,8 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_dipper.common.validation import InvalidSetting
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,8 +49,16 @@ class SubgoalSpace:
             raise ValueError(f"SubgoalSpace needs finite bounds with high > low, got low={low}, high={high}")
         if self.indices is not None and len(self.indices) != low.size:
             raise ValueError(f"SubgoalSpace has {low.size} dimensions but {len(self.indices)} indices")
-        if self.threshold <= 0:
-            raise ValueError(f"SubgoalSpace threshold must be positive, got {self.threshold}")
+        if self.indices is not None and not (
+            all(isinstance(index, (int, np.integer)) and index >= 0 for index in self.indices)
+            and len(set(self.indices)) == len(self.indices)
+        ):
+            raise ValueError(
+                f"SubgoalSpace indices must be distinct entries of the achieved goal (ints >= 0), got {self.indices}"
+            )
+        # NaN compares false with everything: every subgoal would count as reached.
+        if not (isinstance(self.threshold, (int, float, np.number)) and math.isfinite(self.threshold) and self.threshold > 0):
+            raise ValueError(f"SubgoalSpace threshold must be a finite number > 0, got {self.threshold!r}")
         object.__setattr__(self, "low", low)
         object.__setattr__(self, "high", high)
         object.__setattr__(self, "_span", high - low)
@@ -230,6 +241,38 @@ def _default_from_goal_space(goal_space: spaces.Box, threshold: float | None) ->
     if threshold is None or not (np.all(np.isfinite(goal_space.low)) and np.all(np.isfinite(goal_space.high))):
         return None
     return SubgoalSpace(goal_space.low, goal_space.high, threshold)
+
+
+def check_subgoal_space(subgoal_space: Any, observation_space: spaces.Space) -> None:
+    """Refuse a subgoal space that does not fit the goal env's achieved goal, naming ``subgoal_space``: another type,
+    indices beyond the achieved goal, or (a plain box) another dimension than the part of it the subgoals control. Torch or numpy
+    would only fail at the first prediction, naming neither.
+
+    :param subgoal_space: the space given to (or found for) a model
+    :param observation_space: the env's ``Dict`` observation space, with its ``achieved_goal``
+    """
+    if not isinstance(subgoal_space, SubgoalSpace):
+        raise InvalidSetting(
+            "subgoal_space",
+            f"subgoal_space must be a sb3_dipper.common.subgoals.SubgoalSpace (its box, threshold and indices), "
+            f"got {type(subgoal_space).__name__}",
+        )
+    goal_size = int(np.prod(observation_space["achieved_goal"].shape))  # type: ignore[index]
+    indices = subgoal_space.indices
+    if indices is not None and max(indices) >= goal_size:
+        raise InvalidSetting(
+            "subgoal_space",
+            f"subgoal_space indices {indices} reach beyond the env's achieved_goal of {goal_size} entries",
+        )
+    controlled = goal_size if indices is None else len(indices)
+    # A subclass (RAPS's primitives, the kitchen's elements) lays out its dimensions its own way.
+    if type(subgoal_space) is SubgoalSpace and subgoal_space.dim != controlled:
+        raise InvalidSetting(
+            "subgoal_space",
+            f"subgoal_space has {subgoal_space.dim} dimensions, but its subgoals control {controlled} entries of the "
+            f"env's achieved_goal ({goal_size} entries): give a box of {controlled} dimensions, or indices= naming "
+            f"the {subgoal_space.dim} entries it controls",
+        )
 
 
 def resolve_subgoal_space(venv: VecEnv, subgoal_space: SubgoalSpace | None = None) -> SubgoalSpace:

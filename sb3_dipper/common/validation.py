@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 import inspect
 import math
+import os
 from collections.abc import Callable, Collection, Iterable, Mapping
 from typing import Any
 
@@ -231,6 +232,34 @@ def as_float(
     return number
 
 
+def as_learning_rate(name: str, value: Any) -> float | Callable[[float], float]:
+    """A learning rate: a number > 0 (``"1e-3"``, as YAML reads ``1e-3`` without ``!!float``, becomes ``0.001``) or, where
+    SB3 takes one, a schedule of the remaining progress (a callable, kept as it is)."""
+    return value if callable(value) else as_float(name, value, 0.0, low_open=True)
+
+
+def as_entropy_coefficient(name: str, value: Any) -> str | float:
+    """SAC's entropy coefficient: ``"auto"`` or ``"auto_<initial value > 0>"`` learns it, a number >= 0 fixes it (a
+    negative one would make SAC minimise entropy)."""
+    if isinstance(value, str) and value.startswith("auto"):
+        initial = value.removeprefix("auto").removeprefix("_")
+        if value != "auto" and (not value.startswith("auto_") or not _is_positive_number(initial)):
+            raise InvalidSetting(name, f'{name} must be "auto", "auto_<initial value > 0>" or a number >= 0, got {value!r}')
+        return value
+    expected = 'a finite number >= 0, "auto" or "auto_<initial value > 0>"'
+    number = _number(name, value, expected)
+    if not (math.isfinite(number) and number >= 0.0):
+        raise InvalidSetting(name, f"{name} must be {expected}, got {value!r}")
+    return number
+
+
+def _is_positive_number(text: str) -> bool:
+    try:
+        return math.isfinite(float(text)) and float(text) > 0.0
+    except ValueError:
+        return False
+
+
 def as_optional_float(name: str, value: Any, low: float = -math.inf, high: float = math.inf, **kwargs: Any) -> float | None:
     """:func:`as_float` for a setting whose ``None`` means "off" or "the default"."""
     return None if value is None else as_float(name, value, low, high, **kwargs)
@@ -244,11 +273,56 @@ def as_bool(name: str, value: Any) -> bool:
     return bool(value)
 
 
+def as_demo_path(name: str, value: Any) -> str | None:
+    """Where demonstrations come from: ``None`` (none), or a path as a string (a ``pathlib.Path`` is taken as its
+    string, which saves with the model as JSON): an npz file, a Minari dataset directory, ``"auto"`` or
+    ``"auto:dart<N>"``. An empty string would be read as the current directory."""
+    if value is None:
+        return None
+    if isinstance(value, os.PathLike):
+        value = os.fspath(value)
+    if not isinstance(value, str) or not value:
+        raise InvalidSetting(
+            name,
+            f"{name} must be an npz file, a Minari dataset directory, 'auto' or 'auto:dart<N>' (a str or a "
+            f"pathlib.Path), or None for no demonstrations; got {value!r}",
+        )
+    return value
+
+
 def as_choice(name: str, value: Any, choices: tuple[str, ...]) -> str:
     """A setting that names one of ``choices`` (``value_reg``, ``planning``)."""
     if value not in choices:
         raise InvalidSetting(name, f"Unknown {name} {value!r}: choose one of {choices}")
     return value
+
+
+# What a HerReplayBuffer takes from replay_buffer_kwargs (the algorithm gives it its size, spaces, env and device).
+HER_BUFFER_KEYS = (
+    "n_sampled_goal",
+    "goal_selection_strategy",
+    "copy_info_dict",
+    "handle_timeout_termination",
+    "optimize_memory_usage",
+)
+
+
+def checked_her_kwargs(name: str, kwargs: Mapping[str, Any]) -> dict[str, Any]:
+    """A ``HerReplayBuffer``'s keyword arguments (``replay_buffer_kwargs``) checked: known keys, ``n_sampled_goal`` a
+    whole number >= 0 (SB3 relabels ``n / (n + 1)`` of the sampled transitions: below 0 it would relabel every one,
+    and the env's own goals would never be trained on) and ``goal_selection_strategy`` one of SB3's strategies.
+
+    :param name: the parameter, for the messages (``replay_buffer_kwargs``)
+    :param kwargs: its value
+    """
+    check_dict_keys(name, kwargs, HER_BUFFER_KEYS)
+    settings = dict(kwargs)
+    if "n_sampled_goal" in settings:
+        settings["n_sampled_goal"] = as_int(f"{name}['n_sampled_goal']", settings["n_sampled_goal"], 0)
+    strategy = settings.get("goal_selection_strategy")
+    if isinstance(strategy, str):
+        as_choice(f"{name}['goal_selection_strategy']", strategy, ("future", "final", "episode"))
+    return settings
 
 
 def check_flat_sac_settings(model: Any) -> None:
@@ -267,6 +341,7 @@ def check_flat_sac_settings(model: Any) -> None:
     model.train_freq = as_train_freq(model.train_freq)
     model.gradient_steps = as_int("gradient_steps", model.gradient_steps, -1, "-1: as many as environment steps collected")
     model.target_update_interval = as_int("target_update_interval", model.target_update_interval, 1)
+    model.ent_coef = as_entropy_coefficient("ent_coef", model.ent_coef)
 
 
 def policy_class_and_goal_env(model: Any, policy: Any, env: Any, verbose: int) -> tuple[Any, Any]:

@@ -75,9 +75,11 @@ from sb3_dipper.common.files import (
     save_replay_buffer_file,
 )
 from sb3_dipper.common.hierarchical import has_finished_episode, sibling_path
-from sb3_dipper.common.loading import CheckedLoading
+from sb3_dipper.common.loading import CheckedLoading, unchanged_on_failure
 from sb3_dipper.common.validation import (
     InvalidSetting,
+    as_bool,
+    as_demo_path,
     as_float,
     as_optional_float,
     as_optional_int,
@@ -340,7 +342,7 @@ class DAC(CheckedLoading, SAC):
     :param use_sde_at_warmup: gSDE instead of uniform actions before learning starts
     :param demo_path: the expert data: ``"auto"`` (the task's single default scripted demonstration), ``"auto:dart<N>"``
         (N DART episodes of its scripted expert), an npz file or a Minari dataset directory (see
-        :mod:`sb3_dipper.common.demonstrations`)
+        :mod:`sb3_dipper.common.demonstrations`), as a str or a ``pathlib.Path``
     :param n_demos: how many demonstration episodes to use, from the first (the DIPPER paper: one; default: all N of
         ``"auto:dart<N>"``, the one of ``"auto"``, the first episode of a file or dataset)
     :param goal_conditioned_discriminator: feed the desired goal to the discriminator, ``D(s, a, g)``
@@ -388,7 +390,7 @@ class DAC(CheckedLoading, SAC):
         use_sde: bool = False,
         sde_sample_freq: int = -1,
         use_sde_at_warmup: bool = False,
-        demo_path: str | None = "auto",
+        demo_path: str | os.PathLike[str] | None = "auto",
         n_demos: int | None = None,
         goal_conditioned_discriminator: bool = True,
         absorbing_states: bool = True,
@@ -436,11 +438,11 @@ class DAC(CheckedLoading, SAC):
             device=device,
             _init_setup_model=False,
         )
-        self.demo_path = demo_path
+        self.demo_path: str | None = demo_path  # type: ignore[assignment]  # a path-like becomes its str in _check_settings
         self.n_demos = n_demos
         self.goal_conditioned_discriminator = goal_conditioned_discriminator
         self.paper_compat = paper_compat
-        self.absorbing_states = absorbing_states and not paper_compat
+        self.absorbing_states = absorbing_states
         self.gradient_penalty_coef = gradient_penalty_coef
         self.expert_goal_relabel_prob = expert_goal_relabel_prob
         self.discriminator_learning_rate = discriminator_learning_rate
@@ -453,6 +455,7 @@ class DAC(CheckedLoading, SAC):
 
     def _check_settings(self) -> None:
         super()._check_settings()
+        self.demo_path = as_demo_path("demo_path", self.demo_path)
         if self.demo_path is None:
             raise InvalidSetting(
                 "demo_path", 'DAC imitates demonstrations: pass demo_path="auto", an npz file or a Minari dataset directory'
@@ -460,6 +463,13 @@ class DAC(CheckedLoading, SAC):
         # Settings may arrive as floats or strings (zoo -params, YAML 5e4): coerce or refuse them here, not in training.
         self.n_demos = as_optional_int("n_demos", self.n_demos, 1, "DAC needs at least one demonstration episode")
         check_flat_sac_settings(self)
+        self.goal_conditioned_discriminator = as_bool("goal_conditioned_discriminator", self.goal_conditioned_discriminator)
+        self.paper_compat = as_bool("paper_compat", self.paper_compat)
+        self.discriminator_learning_rate = as_float(
+            "discriminator_learning_rate", self.discriminator_learning_rate, 0.0, low_open=True
+        )
+        # The authors' variant has no absorbing states, whatever absorbing_states says.
+        self.absorbing_states = as_bool("absorbing_states", self.absorbing_states) and not self.paper_compat
         self.gradient_penalty_coef = as_float(
             "gradient_penalty_coef", self.gradient_penalty_coef, 0.0, reason="it weighs a loss"
         )
@@ -555,6 +565,7 @@ class DAC(CheckedLoading, SAC):
             self.expert = self._load_expert()
         return result
 
+    @unchanged_on_failure
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``. A model loaded without an env (predict-only buffers) is rebuilt for ``env`` around its
         networks and optimizers, with its configured ``buffer_size`` and the demonstrations; load saved buffers with

@@ -235,7 +235,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower-level learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
-    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param low_level_kwargs: other lower ``SAC`` kwargs (not those set by a parameter here, such as ``buffer_size``)
     :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
         (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
         ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example

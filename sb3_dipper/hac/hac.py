@@ -53,7 +53,7 @@ from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.low_level import clipped_soft_target, step_entropy_coefficient
 from sb3_dipper.common.option_env import DictObs
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_float, as_int, sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_bool, as_float, as_int, sparse_goal_reached_fn
 from sb3_dipper.hac.hindsight import (
     future_goal_pairs,
     goal_rewards,
@@ -221,7 +221,7 @@ class HAC(HIER):
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
-    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param low_level_kwargs: other lower ``SAC`` kwargs (not those set by a parameter here, such as ``buffer_size``)
     :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
         (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
         ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example
@@ -325,6 +325,7 @@ class HAC(HIER):
 
     def _check_settings(self) -> None:
         super()._check_settings()
+        self.paper_compat = as_bool("paper_compat", self.paper_compat)
         self.subgoal_test_prob = as_float("subgoal_test_prob", self.subgoal_test_prob, 0.0, 1.0)
         self.n_hindsight_goals = as_int("n_hindsight_goals", self.n_hindsight_goals, 0)
         self.greedy_episode_interval = as_int("greedy_episode_interval", self.greedy_episode_interval, 1)

@@ -26,7 +26,7 @@ from sb3_dipper.common.hierarchical import HierarchicalAlgorithm, has_finished_e
 from sb3_dipper.common.low_level import LevelLogger, sac_torch_save_params
 from sb3_dipper.common.option_env import DictObs, LevelVecEnv
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_float, as_int
+from sb3_dipper.common.validation import as_entropy_coefficient, as_float, as_int, checked_her_kwargs
 from sb3_dipper.hier.policies import MlpPolicy, MultiInputPolicy
 
 SelfHIER = TypeVar("SelfHIER", bound="HIER")
@@ -85,7 +85,7 @@ class HIER(HierarchicalAlgorithm):
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
-    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param low_level_kwargs: other lower ``SAC`` kwargs (not those set by a parameter here, such as ``buffer_size``)
     :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
         (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
         ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example
@@ -191,6 +191,8 @@ class HIER(HierarchicalAlgorithm):
         self.high_gamma = as_float("high_gamma", self.high_gamma, 0.0, 1.0, low_open=True)
         self.high_tau = as_float("high_tau", self.high_tau, 0.0, 1.0, low_open=True)
         self.high_gradient_steps = as_int("high_gradient_steps", self.high_gradient_steps, 0)
+        self.high_ent_coef = as_entropy_coefficient("high_ent_coef", self.high_ent_coef)
+        self.high_replay_buffer_kwargs = checked_her_kwargs("high_replay_buffer_kwargs", self.high_replay_buffer_kwargs)
 
     def _setup_high_level(self) -> None:
         assert self.subgoal_space is not None

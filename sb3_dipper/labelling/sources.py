@@ -34,7 +34,7 @@ from sb3_dipper.common.preferences import (
     progress_labels,
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import sparse_goal_reached_fn
+from sb3_dipper.common.validation import as_bool, sparse_goal_reached_fn
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 
 PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
@@ -203,7 +203,7 @@ class QueuedPreferenceSource(PreferenceSource):
         self.to_person = to_person
         self.budget = budget
         self.script = script
-        self.reuse_labels = reuse_labels
+        self.reuse_labels = as_bool("reuse_labels", reuse_labels)
         self.seed = seed
         self.queue_info: dict[str, Any] = {}
         self._queue: LabelQueue | None = None

@@ -51,7 +51,7 @@ from sb3_dipper.common.option_env import DictObs, low_level_observation
 from sb3_dipper.common.preference_pipeline import PreferenceLearner, PreferencePipeline
 from sb3_dipper.common.preferences import TrajectoryPairs, TrajectoryPairSampler, flat_pair_observations
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_float, as_int
+from sb3_dipper.common.validation import as_bool, as_float, as_int
 from sb3_dipper.hier.hier import HIER
 from sb3_dipper.labelling.sources import PreferenceSourceSpec, preference_labeler
 from sb3_dipper.piper.policies import RewardModel
@@ -184,7 +184,7 @@ class PIPER(PreferenceLearner, HIER):
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
-    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param low_level_kwargs: other lower ``SAC`` kwargs (not those set by a parameter here, such as ``buffer_size``)
     :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
         (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
         ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example
@@ -305,7 +305,9 @@ class PIPER(PreferenceLearner, HIER):
 
     def _check_settings(self) -> None:
         super()._check_settings()
+        self.high_her = as_bool("high_her", self.high_her)
         self.hindsight_goal_prob = as_float("hindsight_goal_prob", self.hindsight_goal_prob, 0.0, 1.0)
+        self.reward_learning_rate = as_float("reward_learning_rate", self.reward_learning_rate, 0.0, low_open=True)
         self.reward_batch_size = as_int("reward_batch_size", self.reward_batch_size, 1, "pairs per reward-model update")
         self.reward_gradient_steps = as_int("reward_gradient_steps", self.reward_gradient_steps, 0)
         self.value_reg_coef = as_float("value_reg_coef", self.value_reg_coef, 0.0, reason="0 turns the value score off")

@@ -33,7 +33,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from sb3_dipper.common.demonstrations import demonstrations_for
 from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, DemoSAC, EnvGoals, checked_demo_kwargs
-from sb3_dipper.common.loading import CheckedLoading
+from sb3_dipper.common.loading import CheckedLoading, unchanged_on_failure
 from sb3_dipper.common.validation import InvalidSetting, as_int, check_flat_sac_settings, policy_class_and_goal_env
 from sb3_dipper.sac_demo.policies import MlpPolicy, MultiInputPolicy
 
@@ -269,6 +269,7 @@ class SACDemo(CheckedLoading, DemoSAC):
             )
         return super()._setup_learn(*args, **kwargs)
 
+    @unchanged_on_failure
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``. A model loaded without an env (a predict-only buffer) is rebuilt for ``env`` around its
         networks and optimizers, with its configured ``buffer_size`` and the demonstrations; load a saved buffer with

@@ -43,7 +43,7 @@ from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
 from sb3_dipper.common.preferences import relabel_hindsight_actions
 from sb3_dipper.common.subgoals import SubgoalSpace
-from sb3_dipper.common.validation import as_float
+from sb3_dipper.common.validation import as_bool, as_float
 from sb3_dipper.hier.hier import HIER
 from sb3_dipper.saga.policies import SubgoalDiscriminator
 
@@ -122,7 +122,7 @@ class SAGA(HIER):
     :param replay_buffer_kwargs: lower ``HerReplayBuffer`` kwargs
     :param low_learning_rate: lower learning rate
     :param low_policy_kwargs: lower SAC ``policy_kwargs``
-    :param low_level_kwargs: other lower ``SAC`` kwargs
+    :param low_level_kwargs: other lower ``SAC`` kwargs (not those set by a parameter here, such as ``buffer_size``)
     :param demo_kwargs: the lower level's behaviour cloning of demonstrations, a dict with the keys ``demo_path``
         (default ``None``: none), ``n_demos``, ``demo_share``, ``bc_coef``, ``rl_coef``, ``q_filter`` and
         ``normalize_from_demos`` (see :class:`~sb3_dipper.common.hierarchical.HierarchicalAlgorithm`), for example
@@ -231,6 +231,10 @@ class SAGA(HIER):
 
     def _check_settings(self) -> None:
         super()._check_settings()
+        self.state_conditioned = as_bool("state_conditioned", self.state_conditioned)
+        self.discriminator_learning_rate = as_float(
+            "discriminator_learning_rate", self.discriminator_learning_rate, 0.0, low_open=True
+        )
         self.adversarial_coef = as_float(
             "adversarial_coef", self.adversarial_coef, 0.0, reason="it weighs a loss; 0 turns it off"
         )
