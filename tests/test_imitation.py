@@ -346,6 +346,11 @@ def test_the_demos_command_refuses_fewer_than_one_episode(n_episodes, tmp_path, 
     assert not list(tmp_path.iterdir())
 
 
+def test_collecting_fewer_than_one_episode_is_refused_naming_n_episodes():
+    with pytest.raises(ValueError, match="n_episodes must be at least 1, got 0"):
+        expert_demonstrations("PointMazeFourRooms-v0", n_episodes=0)
+
+
 def test_the_demos_command_names_the_file_it_wrote(tmp_path, capsys):
     """--out without .npz: the file is <out>.npz (numpy's rule), and the message named <out>, which does not exist."""
     from sb3_dipper.envs.demos import main

@@ -280,8 +280,25 @@ def run_learning(args: argparse.Namespace) -> tuple[dict[str, str], dict[str, di
 
 
 def check_learning_arguments(args: argparse.Namespace, learning: argparse.ArgumentParser) -> None:
-    """Refuse, before any run folder is made, the algorithms, tasks and overrides every run would fail on (``args``
-    resolved by :func:`resolve_protocol`)."""
+    """Refuse, before any run folder is made, the algorithms, tasks, numbers and overrides every run would fail on or
+    silently change (``args`` resolved by :func:`resolve_protocol`)."""
+    negative_seeds = [str(seed) for seed in args.seeds if seed < 0]
+    if negative_seeds:
+        # rl-zoo3 would replace it with a random seed, and the run filed as seed_-1 could not be repeated.
+        learning.error(f"--seeds {' '.join(negative_seeds)}: a seed is >= 0 (rl-zoo3 draws a random one for a negative)")
+    if args.n_timesteps is not None and args.n_timesteps < 1:
+        # rl-zoo3 trains a -n below 1 to the YAML budget, while the report would state this one.
+        learning.error(f"--n-timesteps {args.n_timesteps}: must be >= 1 primitive step; leave it out for each entry's budget")
+    at_least_one = {
+        "--eval-freq": (args.eval_freq, "primitive steps between evaluations, the points of the report's curves"),
+        "--eval-episodes": (args.eval_episodes, "episodes per evaluation"),
+        "--n-eval-envs": (args.n_eval_envs, "evaluation envs; leave it out for --eval-episodes, at most 10"),
+        "--workers": (args.workers, "runs at a time on this machine"),
+        "--save-freq": (args.save_freq, "primitive steps between kept models; leave it out to keep none"),
+    }
+    for flag, (value, meaning) in at_least_one.items():
+        if value is not None and value < 1:
+            learning.error(f"{flag} {value}: must be >= 1 ({meaning})")
     # A repeated value would start the same run twice at once (in one folder) and count its seed twice in the tables.
     for flag, values in (("--algos", args.algos), ("--envs", args.envs), ("--seeds", args.seeds)):
         repeated = sorted({str(value) for value in values if values.count(value) > 1})

@@ -11,21 +11,23 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+# configs lives beside this script: importable when the script is imported too (its tests), not only when run.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import matplotlib
-import numpy as np
 import torch as th
-from stable_baselines3.common.callbacks import EvalCallback
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from configs import evaluate, load_entry, make_env, make_model, torch_threads
 
-from sb3_dipper.common.files import write_atomically
+from sb3_dipper.common.files import read_npz, write_atomically
+from sb3_dipper.zoo.callbacks import AtomicEvalCallback
 
 ENV_ID = "PointMazeFourRooms-v0"
 
@@ -43,7 +45,9 @@ def final_success(model, env_id: str, seed: int, n_episodes: int, planner: bool)
 
 
 def plot_success_curve(evaluations: Path, output: Path) -> None:
-    data = np.load(evaluations)
+    """The success curve of the evaluations recorded in ``evaluations`` (``evaluations.npz``), as a png at ``output``."""
+    fix = "It is written by this demo's evaluations: run the demo again to write it anew."
+    data = read_npz(evaluations, "evaluation record", fix)
     steps, success = data["timesteps"], data["successes"].mean(axis=1)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(steps, success, marker="o", label="DIPPER")
@@ -69,7 +73,7 @@ def main() -> None:
 
     model, env, n_timesteps = make_model("dipper", ENV_ID, seed=args.seed, verbose=0)
     n_timesteps = args.n_timesteps or n_timesteps
-    eval_callback = EvalCallback(
+    eval_callback = AtomicEvalCallback(
         make_env(ENV_ID, load_entry("dipper", ENV_ID), seed=args.seed + 1000, n_envs=10),
         eval_freq=max(args.eval_freq // env.num_envs, 1),
         n_eval_episodes=args.eval_episodes,

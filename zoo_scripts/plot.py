@@ -42,7 +42,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 from stable_baselines3.common.monitor import LoadMonitorResultsError, load_results
 
-from sb3_dipper.common.files import write_atomically, write_bytes_atomically
+from sb3_dipper.common.files import read_npz, write_atomically, write_bytes_atomically
 
 # A curve: x (primitive steps) and y, one value per x.
 Curve = tuple[np.ndarray, np.ndarray]
@@ -94,14 +94,23 @@ def find_runs(log_folders: Sequence[Path], algo: str, env_id: str) -> list[Path]
 
 def evaluation_curve(run: Path) -> Curve | None:
     """Deterministic success rate against primitive steps from the run's ``evaluations.npz`` (the ``successes`` that
-    SB3's ``EvalCallback`` records when the env reports ``info["is_success"]``), or None before the first evaluation."""
+    SB3's ``EvalCallback`` records when the env reports ``info["is_success"]``), or None before the first evaluation.
+
+    :raises ValueError: the record is damaged (cut short, say) or lacks its ``timesteps``; the message names the file
+    """
     evaluations = run / "evaluations.npz"
     if not evaluations.exists():
         return None
-    with np.load(evaluations) as data:
-        if "successes" not in data or data["successes"].size == 0:
-            return None
-        return data["timesteps"].astype(float), data["successes"].mean(axis=1)
+    fix = (
+        "It is the run's record of its evaluations (SB3's EvalCallback): restore it from a copy of the run folder, or "
+        "delete it to read the run's success from its monitor files."
+    )
+    data = read_npz(evaluations, "evaluation record", fix)
+    if "successes" not in data or data["successes"].size == 0:
+        return None
+    if "timesteps" not in data or len(data["timesteps"]) != len(data["successes"]):
+        raise ValueError(f"Malformed evaluation record {evaluations}: no timesteps for its successes. {fix}")
+    return data["timesteps"].astype(float), data["successes"].mean(axis=1)
 
 
 def success_curve(run: Path, window: int = 100) -> Curve:

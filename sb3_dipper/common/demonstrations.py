@@ -34,6 +34,7 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_dipper.common.files import read_npz, save_npz
+from sb3_dipper.common.validation import as_int
 
 OBSERVATION_KEYS = ("observation", "achieved_goal", "desired_goal")
 # The member of an npz file that records the digest of its other arrays.
@@ -189,6 +190,7 @@ def collect_demonstrations(
     """
     if not (np.isfinite(action_noise) and action_noise >= 0.0):
         raise ValueError(f"action_noise must be a finite standard deviation >= 0, got {action_noise}")
+    n_episodes = as_int("n_episodes", n_episodes, 1, "a demonstration file holds at least one episode")
     env = gym.make(env_id, **(env_kwargs or {}))
     expert = expert_factory(env.unwrapped)
     noise = np.random.default_rng(seed)

@@ -245,8 +245,8 @@ def _default_from_goal_space(goal_space: spaces.Box, threshold: float | None) ->
 
 def check_subgoal_space(subgoal_space: Any, observation_space: spaces.Space) -> None:
     """Refuse a subgoal space that does not fit the goal env's achieved goal, naming ``subgoal_space``: another type,
-    indices beyond the achieved goal, or (a plain box) another dimension than the part of it the subgoals control. Torch or numpy
-    would only fail at the first prediction, naming neither.
+    indices beyond the achieved goal, or (a plain box) another dimension than the part of it the subgoals control.
+    Torch or numpy would only fail at the first prediction, naming neither.
 
     :param subgoal_space: the space given to (or found for) a model
     :param observation_space: the env's ``Dict`` observation space, with its ``achieved_goal``

@@ -233,9 +233,10 @@ def as_float(
 
 
 def as_learning_rate(name: str, value: Any) -> float | Callable[[float], float]:
-    """A learning rate: a number > 0 (``"1e-3"``, as YAML reads ``1e-3`` without ``!!float``, becomes ``0.001``) or, where
-    SB3 takes one, a schedule of the remaining progress (a callable, kept as it is)."""
-    return value if callable(value) else as_float(name, value, 0.0, low_open=True)
+    """A learning rate: a number >= 0 (``"1e-3"``, as YAML reads ``1e-3`` without ``!!float``, becomes ``0.001``; 0 is a
+    model that no longer learns, as rl-zoo3's ``enjoy`` loads one) or, where SB3 takes one, a schedule of the remaining
+    progress (a callable, kept as it is)."""
+    return value if callable(value) else as_float(name, value, 0.0)
 
 
 def as_entropy_coefficient(name: str, value: Any) -> str | float:

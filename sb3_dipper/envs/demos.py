@@ -16,6 +16,7 @@ from sb3_dipper.common.demonstrations import (
     load_demonstrations,
     written_without_digest,
 )
+from sb3_dipper.common.files import npz_path
 
 
 def expert_demonstrations(
@@ -88,6 +89,8 @@ def main(argv: list[str] | None = None) -> None:
         help="DART: execute the expert's action plus Gaussian noise of this standard deviation, record the expert's",
     )
     args = parser.parse_args(argv)
+    if args.n_episodes < 1:
+        parser.error(f"--n-episodes must be at least 1 (the episodes to write), got {args.n_episodes}")
     if not args.action_noise >= 0.0:
         parser.error(f"--action-noise must be >= 0, got {args.action_noise}")
     import sb3_dipper  # noqa: F401  (registers our env ids)
@@ -97,9 +100,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     demonstrations.save(args.out)
     success = demonstrations.successes[np.cumsum(demonstrations.episode_lengths) - 1].mean()
-    print(
-        f"Wrote {demonstrations.n_episodes} episodes ({len(demonstrations)} steps, final success {success:.2f}) to {args.out}"
-    )
+    steps = len(demonstrations)
+    # save appends .npz to a name without it, as numpy does: name the file written.
+    print(f"Wrote {demonstrations.n_episodes} episodes ({steps} steps, final success {success:.2f}) to {npz_path(args.out)}")
 
 
 if __name__ == "__main__":

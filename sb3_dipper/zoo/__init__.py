@@ -14,9 +14,10 @@ takes gymnasium's ``module:EnvId`` form. Each ``train`` run creates its run fold
 together with the same ``-f`` never share one.
 
 Long runs can be trained in pieces: ``--pause-after-minutes M`` saves a resume checkpoint in the run folder after M
-minutes of training and stops; ``--resume RUN_FOLDER`` (with the same other flags) continues that run in its folder to
-its whole budget: same step count, evaluations on the same grid appended to the same ``evaluations.npz``, the replay
-buffers as they were. The resumed part reseeds its random generators, so it is not the same run as one without a pause::
+minutes of training and stops; ``--resume RUN_FOLDER`` (with the same other flags; ``-n`` may be left out) continues
+that run in its folder to the budget it was started with: same step count, evaluations on the same grid appended to the
+same ``evaluations.npz``, the replay buffers as they were. The resumed part reseeds its random generators, so it is not
+the same run as one without a pause::
 
     sb3-dipper-zoo train --algo dipper --env FetchPushFixed-v0 -f logs --pause-after-minutes 80
     sb3-dipper-zoo train --algo dipper --env FetchPushFixed-v0 -f logs --resume logs/dipper/FetchPushFixed-v0_1
@@ -35,7 +36,8 @@ is importable from here too:
 
 - :mod:`sb3_dipper.zoo.algorithms`: the zoo names of our algorithms and where their hyperparameter files are;
 - :mod:`sb3_dipper.zoo.hyperparams_opt`: the Optuna search spaces of ``-optimize``;
-- :mod:`sb3_dipper.zoo.callbacks`: the callback our hyperparameter files name (``progress.csv``);
+- :mod:`sb3_dipper.zoo.callbacks`: the callback our hyperparameter files name (``progress.csv``) and the evaluation
+  callback of every run (``evaluations.npz`` written whole);
 - :mod:`sb3_dipper.zoo.exp_manager`: rl-zoo3's experiment manager with exclusive run folders, pausing, resuming and the
   labelling page (:func:`sb3_dipper.labelling.start_label_page`);
 - :mod:`sb3_dipper.zoo.resume`: pausing and resuming long runs;
@@ -54,7 +56,7 @@ from pathlib import Path
 
 from sb3_dipper.labelling.training_page import start_label_page
 from sb3_dipper.zoo.algorithms import ZOO_ALGORITHMS, hyperparams_dir
-from sb3_dipper.zoo.callbacks import CSVProgressCallback
+from sb3_dipper.zoo.callbacks import AtomicEvalCallback, CSVProgressCallback
 from sb3_dipper.zoo.exp_manager import RunControl, claim_run_folder, install_experiment_manager
 from sb3_dipper.zoo.hyperparams_opt import (
     CONVERTERS,
@@ -86,6 +88,7 @@ from sb3_dipper.zoo.resume import (
     recorded_evaluations,
     remove_resume_checkpoint,
     replace_folder,
+    resumed_n_timesteps,
     run_env_folder,
     saved_steps,
     set_aside_part,
@@ -103,6 +106,7 @@ __all__ = [
     "SAMPLERS",
     "STEPS_KEY",
     "ZOO_ALGORITHMS",
+    "AtomicEvalCallback",
     "CSVProgressCallback",
     "PauseCheckpointCallback",
     "RecordedObject",
@@ -131,6 +135,7 @@ __all__ = [
     "register",
     "remove_resume_checkpoint",
     "replace_folder",
+    "resumed_n_timesteps",
     "run_control_parser",
     "run_env_folder",
     "sample_dipper_nov_params",
@@ -274,7 +279,8 @@ def run_control_parser() -> argparse.ArgumentParser:
         "--resume",
         type=Path,
         metavar="RUN_FOLDER",
-        help="continue the run paused in RUN_FOLDER to its whole budget (give the same other flags)",
+        help="continue the run paused in RUN_FOLDER to the budget it was started with (give the same other flags; -n "
+        "may be left out)",
     )
     flags.add_argument(
         "--label-page",

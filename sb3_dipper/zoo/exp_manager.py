@@ -17,6 +17,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_dipper.common.deprecation import completed_groups
 from sb3_dipper.labelling.training_page import start_label_page
+from sb3_dipper.zoo.callbacks import AtomicEvalCallback
 from sb3_dipper.zoo.resume import (
     RESUME_FOLDER,
     RESUME_MODEL,
@@ -28,6 +29,7 @@ from sb3_dipper.zoo.resume import (
     learn_resumed,
     recorded_evaluations,
     remove_resume_checkpoint,
+    resumed_n_timesteps,
     run_env_folder,
     set_aside_part,
 )
@@ -70,7 +72,7 @@ class RunControl:
     :param pause_after_minutes: ``--pause-after-minutes M``: after M minutes of training, save a resume checkpoint in
         the run folder and stop (rl-zoo3 then saves the model as usual)
     :param resume: ``--resume RUN_FOLDER``: continue that run from its resume checkpoint, in the same folder, to the
-        run's whole budget
+        budget it was started with
     :param label_page: ``--label-page [HOST:]PORT``: serve the labelling page of the model's label queue (its
         ``preference_source`` is ``people:DIR`` or ``mixed:DIR:FRACTION``) while it trains, as ``(host, port)``
     """
@@ -79,25 +81,31 @@ class RunControl:
     resume: Path | None = None
     label_page: tuple[str, int] | None = None
 
-    def check_resumable(self, env_name: str, hyperparameters: Mapping[str, Any], evaluation_flags: Mapping[str, Any]) -> None:
+    def check_resumable(
+        self, env_name: str, hyperparameters: Mapping[str, Any], evaluation_flags: Mapping[str, Any], n_timesteps: int
+    ) -> int:
         """With ``--resume``, refuse before anything changes a run that cannot continue as it was: another env than
-        the run's, other hyperparameters or evaluation flags than its own (:func:`check_resumed_hyperparameters`,
-        :func:`check_resumed_evaluations`), a checkpoint without its buffers or statistics
+        the run's, other hyperparameters, evaluation flags or budget than its own (:func:`check_resumed_hyperparameters`,
+        :func:`check_resumed_evaluations`, :func:`resumed_n_timesteps`), a checkpoint without its buffers or statistics
         (:func:`check_resume_checkpoint`), or a damaged evaluation record.
 
         :param env_name: the env's folder name in the run folder
         :param hyperparameters: the hyperparameters given, as rl-zoo3 read them
         :param evaluation_flags: ``eval_freq`` and ``eval_episodes`` given, as rl-zoo3 records them in ``args.yml``
+        :param n_timesteps: ``-n`` as given (<= 0 when left out)
+        :return: the ``-n`` to train to: the one given, or with ``--resume`` the run's own
         """
         if self.resume is None:
-            return
+            return n_timesteps
         run_env_folder(self.resume, env_name)
         check_resumed_hyperparameters(self.resume, env_name, hyperparameters)
         check_resumed_evaluations(self.resume, env_name, evaluation_flags)
+        n_timesteps = resumed_n_timesteps(self.resume, env_name, n_timesteps)
         # rl-zoo3 normalises for any `normalize` entry but False (a dict or a string of one included).
         normalized = hyperparameters.get("normalize", False) not in (None, False)
         check_resume_checkpoint(self.resume, env_name, normalized)
         recorded_evaluations(self.resume)
+        return n_timesteps
 
 
 class TrialsKeepTheEntrysGroups(_ExperimentManager):
@@ -143,6 +151,35 @@ class TrialsKeepTheEntrysGroups(_ExperimentManager):
         return algorithm.setting_groups() if hasattr(algorithm, "setting_groups") else set()
 
 
+class RunRecordsKeptWhole(_ExperimentManager):
+    """rl-zoo3's experiment manager that never leaves a run's records cut short or rewritten: its evaluation callback
+    writes ``evaluations.npz`` to a temporary file and renames it into place (:class:`AtomicEvalCallback`), and a
+    resumed run (``resuming``) keeps the records of how it started (``<env>/config.yml``, ``args.yml``,
+    ``command.txt``), which rl-zoo3 would rewrite in place.
+    """
+
+    resuming = False
+
+    def create_callbacks(self) -> None:
+        import rl_zoo3.exp_manager
+
+        # rl-zoo3 makes its evaluation callback from the EvalCallback of its module.
+        eval_callback_class = rl_zoo3.exp_manager.EvalCallback
+        rl_zoo3.exp_manager.EvalCallback = AtomicEvalCallback  # type: ignore[misc]
+        try:
+            super().create_callbacks()
+        finally:
+            rl_zoo3.exp_manager.EvalCallback = eval_callback_class  # type: ignore[misc]
+
+    def _save_config(self, saved_hyperparams: dict[str, Any]) -> None:
+        if not self.resuming:
+            super()._save_config(saved_hyperparams)
+            return
+        # The next --resume checks the flags and hyperparameters given against these records; rewritten by a resume
+        # without -n, args.yml would lose the run's -n and the next resume would train to the YAML budget.
+        print(f"Log path: {self.save_path} (resumed: the records of how the run started, in {self.params_path}, are kept)")
+
+
 def install_experiment_manager(control: RunControl | None = None) -> None:
     """Make rl-zoo3's train create each run's folder with :func:`claim_run_folder` and obey ``control``.
 
@@ -154,7 +191,7 @@ def install_experiment_manager(control: RunControl | None = None) -> None:
 
     run_control = control or RunControl()
 
-    class OwnRunFolderExperimentManager(TrialsKeepTheEntrysGroups, ExperimentManager):
+    class OwnRunFolderExperimentManager(TrialsKeepTheEntrysGroups, RunRecordsKeptWhole, ExperimentManager):
         """rl-zoo3's experiment manager whose run folder is claimed exclusively when it is created, and which pauses
         and resumes runs (:class:`RunControl`)."""
 
@@ -167,12 +204,16 @@ def install_experiment_manager(control: RunControl | None = None) -> None:
                 # <dir>/<env>/vecnormalize.pkl, the normalisation statistics.
                 self.trained_agent = str(run_control.resume / RESUME_FOLDER / RESUME_MODEL)
                 self.continue_training = True
+                self.resuming = True
 
         def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
             hyperparams, saved_hyperparams = super().read_hyperparameters()
             # Before anything in the run folder changes (create_log_folder sets the last part's logs aside).
+            # self.n_timesteps is still -n as given (args.yml's n_timesteps): rl-zoo3 puts the YAML budget in its place later.
             evaluation_flags = {"eval_freq": self.eval_freq, "eval_episodes": self.n_eval_episodes}
-            run_control.check_resumable(str(self.env_name), saved_hyperparams, evaluation_flags)
+            self.n_timesteps = run_control.check_resumable(
+                str(self.env_name), saved_hyperparams, evaluation_flags, self.n_timesteps
+            )
             return hyperparams, saved_hyperparams
 
         def create_log_folder(self) -> None:

@@ -2,11 +2,12 @@
 
 A paused run leaves a resume checkpoint in its run folder (:class:`PauseCheckpointCallback`: the model, its replay
 buffers and normalisation statistics in ``<run>/resume/``). ``--resume RUN_FOLDER`` continues that run in its folder to
-its whole budget: it refuses hyperparameters other than the run's own (:func:`check_resumed_hyperparameters`), sets the
-logs of the part trained so far aside (:func:`set_aside_part`), lets the evaluations go on on the run's grid
-(:func:`continue_evaluations`), trains what is left of the budget (:func:`learn_resumed`) and removes the checkpoint
-once the final model is written (:func:`remove_resume_checkpoint`). :mod:`sb3_dipper.zoo.exp_manager` calls these from
-rl-zoo3's experiment manager.
+its whole budget: it refuses hyperparameters other than the run's own (:func:`check_resumed_hyperparameters`) and
+another budget (:func:`resumed_n_timesteps`; without ``-n`` it trains to the run's own), keeps the run's records of
+how it started (``config.yml``, ``args.yml``), sets the logs of the part trained so far aside (:func:`set_aside_part`),
+lets the evaluations go on on the run's grid (:func:`continue_evaluations`), trains what is left of the budget
+(:func:`learn_resumed`) and removes the checkpoint once the final model is written (:func:`remove_resume_checkpoint`).
+:mod:`sb3_dipper.zoo.exp_manager` calls these from rl-zoo3's experiment manager.
 """
 
 from __future__ import annotations
@@ -225,6 +226,39 @@ def check_resumed_evaluations(run_folder: Path, env_name: str, given: Mapping[st
             f"--resume {run_folder}: {', '.join(differing)}. A resumed run evaluates as it started, so that its "
             f"evaluations stay one record ({EVALUATIONS_FILE}); resume it with the run's flags, or start a new run."
         )
+
+
+def resumed_n_timesteps(run_folder: Path, env_name: str, given: int) -> int:
+    """The ``-n`` a resumed run trains to: the budget the run was started with.
+
+    rl-zoo3 records ``-n`` in ``<env>/args.yml`` as ``n_timesteps`` (-1 for a run started without ``-n``, which trains
+    to the ``n_timesteps`` of its hyperparameters, recorded in ``config.yml``). A resume without ``-n`` trains to the
+    run's own budget, whichever it was; another ``-n`` is refused: a smaller one would end the run at once and remove
+    its resume checkpoint, a larger one would make it another experiment than the one it started as.
+
+    :param given: the ``-n`` of this command, as rl-zoo3 reads it (<= 0 when left out)
+    :return: the ``-n`` to train to, as rl-zoo3 reads it (<= 0: the ``n_timesteps`` of the hyperparameters)
+    :raises ValueError: ``given`` is another budget than the run's; the message names both and the fix
+    """
+    recorded_flags = run_record(run_folder / env_name / ARGS_FILE, "flags")
+    if "n_timesteps" not in recorded_flags:
+        return given
+    recorded = int(recorded_flags["n_timesteps"])
+    if given <= 0 or given == recorded:
+        return recorded
+    if recorded > 0:
+        budget, started = recorded, f"it was started with -n {recorded} ({run_folder / env_name / ARGS_FILE})"
+    else:
+        config = run_folder / env_name / CONFIG_FILE
+        budget = int(float(run_record(config, "hyperparameters")["n_timesteps"]))
+        if given == budget:
+            return given
+        started = f"it was started without -n, so it trains to the n_timesteps of its hyperparameters ({config})"
+    raise ValueError(
+        f"--resume {run_folder}: -n {given}, but the run's budget is {budget:,} primitive steps: {started}. A resumed "
+        f"run trains to the budget it was started with: resume it with -n {budget} or without -n. To train another "
+        "budget, start a new run (leave out --resume)."
+    )
 
 
 def check_resumed_hyperparameters(run_folder: Path, env_name: str, given: Mapping[str, Any]) -> None:

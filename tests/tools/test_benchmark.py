@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.test_files import truncate
 from zoo_scripts import benchmark, plot
 from zoo_scripts.benchmarking.run import ray_runtime_env
 
@@ -267,6 +268,25 @@ def test_a_later_report_takes_the_runs_whose_folders_are_gone_from_the_earlier_c
     assert sac.startswith("| SAC+HER | 2 | 3,000 | 0.75 +- 0.25 |")
 
 
+def test_a_damaged_evaluation_record_leaves_out_an_unfinished_run_and_stops_a_finished_one(tmp_path):
+    """A record cut short (a run killed while SB3 rewrote it in place) stopped the whole report with a BadZipFile
+    naming no file. An unfinished run's is reported as no evaluation yet, with a warning naming the file; a finished
+    run's is an error naming it."""
+    write_run(tmp_path, "dipper", ENV_ID, 0, [0.0, 0.5, 1.0], hierarchical=True)
+    write_run(tmp_path, "dipper", ENV_ID, 1, [0.0, 0.5], hierarchical=True, finished=False)
+    unfinished = run_folder(tmp_path, "dipper", 1) / "evaluations.npz"
+    truncate(unfinished)
+    with pytest.warns(UserWarning, match=rf"{re.escape(str(unfinished))}: not a complete npz archive.* not evaluated yet"):
+        table, curves, _ = benchmark.task_table(tmp_path, ["dipper"], ENV_ID, [0, 1], {})
+    assert curves["dipper"].seeds == [0]
+    assert "| DIPPER | 1 | 3,000 | 1.00 +- 0.00 |" in table
+
+    finished = run_folder(tmp_path, "dipper", 0) / "evaluations.npz"
+    truncate(finished)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(finished))}: not a complete npz archive"):
+        benchmark.task_table(tmp_path, ["dipper"], ENV_ID, [0, 1], {})
+
+
 def test_a_csv_without_the_report_s_columns_is_refused(tmp_path):
     old = tmp_path / "old.csv"
     old.write_text(f"{CSV_HEADER.removesuffix(',finished,steps_per_second')}\n{ENV_ID},dipper,0,1000,0.0,,,,\n")
@@ -331,6 +351,35 @@ def test_learning_refuses_what_every_run_would_fail_on_before_making_a_folder(
     out = tmp_path / "out"
     argv = ["benchmark.py", "learning", "--algos", "dipper", "--envs", ENV_ID, "--seeds", "0", "--out", str(out)]
     monkeypatch.setattr(sys, "argv", [*argv, *arguments])
+    with pytest.raises(SystemExit) as exited:
+        benchmark.main()
+    assert exited.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--seeds", "0", "-1"], "--seeds -1: a seed is >= 0 (rl-zoo3 draws a random one for a negative)"),
+        (["--n-timesteps", "-5"], "--n-timesteps -5: must be >= 1 primitive step; leave it out for each entry's budget"),
+        (["--n-timesteps", "0"], "--n-timesteps 0: must be >= 1"),
+        (["--eval-freq", "0"], "--eval-freq 0: must be >= 1 (primitive steps between evaluations"),
+        (["--protocol", "quick", "--eval-freq", "-8000"], "--eval-freq -8000: must be >= 1"),
+        (["--eval-episodes", "0"], "--eval-episodes 0: must be >= 1 (episodes per evaluation)"),
+        (["--n-eval-envs", "0"], "--n-eval-envs 0: must be >= 1 (evaluation envs; leave it out for --eval-episodes"),
+        (["--workers", "0"], "--workers 0: must be >= 1 (runs at a time on this machine)"),
+        (["--save-freq", "0"], "--save-freq 0: must be >= 1 (primitive steps between kept models; leave it out"),
+    ],
+)
+def test_learning_refuses_numbers_that_would_change_or_stop_every_run(tmp_path, monkeypatch, capsys, arguments, message):
+    """The reported case: all of these were accepted. rl-zoo3 draws a random seed for a negative one (filed as seed_-1,
+    never to be repeated) and trains a -n below 1 to the YAML budget (the report stating the one given); no evaluation
+    leaves a finished run without a curve; --workers 0 failed in the thread pool, naming no flag. With --report-only,
+    so that nothing would train even if a value got through."""
+    out = tmp_path / "out"
+    argv = ["benchmark.py", "learning", "--algos", "sac", "--envs", ENV_ID, "--seeds", "0", "--out", str(out)]
+    monkeypatch.setattr(sys, "argv", [*argv, "--report-only", *arguments])
     with pytest.raises(SystemExit) as exited:
         benchmark.main()
     assert exited.value.code == 2

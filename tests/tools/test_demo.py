@@ -5,7 +5,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from tests.test_files import truncate
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -26,3 +29,19 @@ def test_demo_trains_and_reports_the_model_and_its_policy_alone(tmp_path):
     assert report, done.stdout
     assert 0 <= float(report[1]) <= 1 and 0 <= int(report[2]) <= 100 and 0 <= float(report[3]) <= 1
     assert (tmp_path / "success_curve.png").stat().st_size > 0 and (tmp_path / "dipper_point_maze.zip").is_file()
+
+
+def test_the_success_curve_of_a_damaged_evaluation_record_is_an_error_naming_it(tmp_path):
+    """A record cut short failed with a BadZipFile naming no file."""
+    from zoo_scripts import demo
+
+    record, figure = tmp_path / "evaluations.npz", tmp_path / "success_curve.png"
+    success = np.array([[0.0, 1.0], [1.0, 1.0]])
+    np.savez(record, timesteps=np.array([1200, 2400]), results=success - 1, ep_lengths=np.full((2, 2), 50), successes=success)
+    demo.plot_success_curve(record, figure)
+    assert figure.stat().st_size > 0
+    figure.unlink()
+    truncate(record)
+    with pytest.raises(ValueError, match=r"evaluations\.npz: not a complete npz archive.* run the demo again"):
+        demo.plot_success_curve(record, figure)
+    assert not figure.exists()

@@ -29,6 +29,7 @@ from sb3_dipper.zoo import (
     check_resumed_evaluations,
     check_resumed_hyperparameters,
     continue_evaluations,
+    resumed_n_timesteps,
     run_env_folder,
     saved_steps,
     set_aside_part,
@@ -242,6 +243,48 @@ def test_a_resumed_run_keeps_its_checkpoint_until_its_final_model_is_written(tmp
     assert (run / "checkpoint_at_final_save").read_text() == "True"
     assert saved_steps(run / "Pendulum-v1.zip") == (300, 300)
     assert not (run / RESUME_FOLDER).exists()  # removed once the final model was written
+
+
+def test_a_resumed_run_trains_to_its_own_budget_and_keeps_its_records(tmp_path):
+    """The reported case: resumed with a smaller -n, a run trained 0 steps, called itself finished and removed its
+    resume checkpoint; resumed without -n, it trained to the YAML budget; either way rl-zoo3 rewrote its args.yml and
+    config.yml in place. Another -n is refused before anything changes; without -n the run trains to its own."""
+    run = paused_pendulum_run(tmp_path)
+    flags = [*pendulum_flags(tmp_path), "-params", *SAC_PARAMS, "--resume", str(run)]
+    before = files_under(run)
+    smaller = zoo_train(*flags, "-n", "100")  # argparse keeps the last -n
+    assert smaller.returncode != 0
+    assert f"--resume {run}: -n 100, but the run's budget is 300 primitive steps: it was started with -n 300" in smaller.stderr
+    assert "resume it with -n 300 or without -n" in smaller.stderr
+    assert files_under(run) == before
+
+    # How the run started: rl-zoo3 would rewrite them in place (args.yml with -n left out).
+    records = [Path("Pendulum-v1", name) for name in ("args.yml", "config.yml", "command.txt")]
+    without_n = flags[: flags.index("-n")] + flags[flags.index("-n") + 2 :]
+    resumed = zoo_train(*without_n)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert saved_steps(run / "Pendulum-v1.zip") == (300, 300)
+    assert not (run / RESUME_FOLDER).exists()
+    assert {path: (run / path).read_bytes() for path in records} == {path: before[path] for path in records}
+
+
+def test_the_budget_of_a_resumed_run_is_the_one_it_was_started_with(tmp_path):
+    """rl-zoo3 records -n as n_timesteps in args.yml: -1 for a run started without it, which trains to the n_timesteps
+    of its hyperparameters (config.yml)."""
+    write_config(tmp_path, "Pendulum-v1", {"gamma": 0.98, "n_timesteps": 20000})
+    args = tmp_path / "Pendulum-v1" / "args.yml"
+    args.write_text(yaml.dump(OrderedDict([("eval_freq", 10000), ("n_timesteps", 100000)])))
+    assert resumed_n_timesteps(tmp_path, "Pendulum-v1", -1) == 100000
+    assert resumed_n_timesteps(tmp_path, "Pendulum-v1", 100000) == 100000
+    for other in (40000, 20000, 200000):
+        with pytest.raises(ValueError, match=rf"-n {other}, but the run's budget is 100,000 primitive steps: .* -n 100000"):
+            resumed_n_timesteps(tmp_path, "Pendulum-v1", other)
+
+    args.write_text(yaml.dump(OrderedDict([("eval_freq", 10000), ("n_timesteps", -1)])))
+    assert resumed_n_timesteps(tmp_path, "Pendulum-v1", -1) == -1
+    assert resumed_n_timesteps(tmp_path, "Pendulum-v1", 20000) == 20000
+    with pytest.raises(ValueError, match=r"-n 5000, but the run's budget is 20,000 primitive steps: it was started without"):
+        resumed_n_timesteps(tmp_path, "Pendulum-v1", 5000)
 
 
 def files_under(folder: Path) -> dict[Path, bytes]:

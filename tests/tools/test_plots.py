@@ -10,6 +10,7 @@ import matplotlib
 import numpy as np
 import pytest
 
+from tests.test_files import truncate
 from zoo_scripts import plot
 
 ENVS = ["MazeA-v0", "MazeB-v0"]
@@ -84,6 +85,16 @@ def test_success_is_the_mean_over_seeds_and_monitor_runs_are_smoothed(logs):
     steps, success = plot.success_curve(plot.find_runs([logs], "sac", ENVS[0])[0], window=10)
     np.testing.assert_array_equal(steps, np.arange(1, 101) * 50)
     assert success[60] == 0 and success[65] == pytest.approx(0.5) and success[-1] == 1
+
+
+def test_a_damaged_evaluation_record_is_an_error_naming_it(logs):
+    """A record cut short (a run killed while SB3 rewrote it in place) failed with a BadZipFile naming no file."""
+    run = logs / "dipper" / f"{ENVS[0]}_1"
+    truncate(run / "evaluations.npz")
+    with pytest.raises(ValueError, match=r"Malformed evaluation record .*evaluations\.npz: not a complete npz archive"):
+        plot.evaluation_curve(run)
+    with pytest.raises(ValueError, match=r"restore it from a copy of the run folder, or delete it"):
+        plot.plot_success([logs], ["dipper"], ENVS)
 
 
 def test_hierarchical_metrics_skip_algorithms_without_them(logs):

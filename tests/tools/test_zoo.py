@@ -6,16 +6,22 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 import optuna
 import pytest
 import yaml
 from optuna.trial import TrialState
+from stable_baselines3 import SAC
+from stable_baselines3.common.monitor import Monitor
 
 from sb3_dipper import HIER
+from sb3_dipper.common.files import npz_path
 from sb3_dipper.zoo import (
     CONVERTERS,
     SAMPLERS,
     ZOO_ALGORITHMS,
+    AtomicEvalCallback,
     CSVProgressCallback,
     claim_run_folder,
     hyperparams_dir,
@@ -193,6 +199,52 @@ def test_progress_csv_is_never_shared_between_runs(tmp_path):
         tiny_model(HIER, env).learn(10, callback=CSVProgressCallback())
     assert (tmp_path / "progress.csv").read_text() == "another run's rows\n"
     env.close()
+
+
+class Killed(Exception):
+    """A kill of the training process, as the test raises it."""
+
+
+def test_a_run_killed_while_it_writes_its_evaluations_keeps_the_previous_record(tmp_path, monkeypatch):
+    """SB3's EvalCallback rewrote evaluations.npz in place at every evaluation: a kill meanwhile left it cut short, and
+    every evaluation so far with it (plot.py and the benchmark report then failed on a BadZipFile naming no file)."""
+    model = SAC("MlpPolicy", "Pendulum-v1", learning_starts=1000, buffer_size=1000, policy_kwargs=dict(net_arch=[16]))
+    eval_env = Monitor(gym.make("Pendulum-v1", max_episode_steps=10))
+    evaluation = AtomicEvalCallback(eval_env, eval_freq=5, log_path=str(tmp_path))
+    model.learn(5, callback=evaluation)
+    record = tmp_path / "evaluations.npz"
+    with np.load(record) as data:  # SB3's record: its keys, read by numpy as SB3's and rl-zoo3's tools read it
+        assert sorted(data.files) == ["ep_lengths", "results", "timesteps"] and data["timesteps"].tolist() == [5]
+    first = record.read_bytes()
+    savez = np.savez
+
+    def killed_while_writing(file, **arrays):
+        savez(file, **arrays)
+        written = npz_path(file)
+        written.write_bytes(written.read_bytes()[: written.stat().st_size // 2])
+        raise Killed
+
+    monkeypatch.setattr(np, "savez", killed_while_writing)
+    with pytest.raises(Killed):
+        model.learn(5, callback=evaluation, reset_num_timesteps=False)
+    assert record.read_bytes() == first
+    assert [path.name for path in tmp_path.iterdir()] == ["evaluations.npz"]  # no temporary file left behind
+
+
+def test_rl_zoo_train_evaluates_with_the_callback_that_writes_the_record_whole(tmp_path):
+    script = """
+import argparse, rl_zoo3.exp_manager, rl_zoo3.train
+from stable_baselines3.common.callbacks import EvalCallback
+from sb3_dipper.zoo import register
+register()
+manager = rl_zoo3.train.ExperimentManager(argparse.Namespace(), "sac", "Pendulum-v1", "logs", eval_freq=100, verbose=0)
+manager.create_log_folder()
+manager.create_callbacks()
+print(*(type(callback).__name__ for callback in manager.callbacks), rl_zoo3.exp_manager.EvalCallback is EvalCallback)
+"""
+    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.split("\n")[-2] == "AtomicEvalCallback True"  # rl-zoo3's own name is left as it was
 
 
 def test_dipper_nov_is_tuned_without_the_lower_value_term():

@@ -12,6 +12,7 @@ import datetime
 import os
 import platform
 import shlex
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,9 +102,18 @@ class Curves:
 def run_seed_curve(run: Path, seed: int) -> SeedCurve | None:
     """The evaluations of one zoo run folder, read with plot.py's loaders, or None before its first evaluation.
 
-    The option metrics at an evaluation are the last values ``progress.csv`` logged at or before its step.
+    The option metrics at an evaluation are the last values ``progress.csv`` logged at or before its step. A damaged
+    evaluation record of an unfinished run (killed while SB3's EvalCallback rewrote it in place) is left out with a
+    warning, as a run not evaluated yet, so that one such run does not stop the report of the others; a finished run's
+    is an error.
     """
-    curve = plot.evaluation_curve(run)
+    try:
+        curve = plot.evaluation_curve(run)
+    except ValueError as error:
+        if finished(run):
+            raise
+        warnings.warn(f"{error} The run is unfinished: it is reported as not evaluated yet.")
+        return None
     if curve is None:
         return None
     log = plot.load_progress(run)
