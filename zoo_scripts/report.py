@@ -20,8 +20,7 @@ exactly one configuration: the run label of ``docs/benchmarks/paper-tasks-cpu.cs
 * the paper's DIPPER and the baselines.
 
 The task column names what every method that takes demonstrations learns from at the CPU profiles (the DART episodes
-where DIPPER's profile takes them); a cell learnt from other demonstrations is marked and the mark explained below the
-tables.
+where DIPPER's profile takes them).
 
 The matrix is written between ``<!-- results-matrix -->`` markers, the figure (one panel per task, one curve per column
 that has learning curves: the mean over seeds and a band of one standard deviation) to
@@ -65,12 +64,11 @@ TASKS = {  # task: (budget in primitive steps, short name)
     "FetchFourRoomMaze-v0": (700_000, "random Fetch mazes"),
 }
 PNP_FIXED, PUSH_FIXED, PNP, PUSH, KITCHEN, MAZE_FIXED, MAZE = TASKS
-ONE_DEMONSTRATION = "†"
 
 
 def profile_demonstrations(task: str) -> str:
     """What the ``dipper`` profile of ``task`` learns from (``demo_kwargs`` of hyperparams/dipper.yml), which every CPU
-    profile that takes demonstrations shares; a cell learnt from other ones is marked."""
+    profile that takes demonstrations shares."""
     demo_path = (load_entry("dipper", task).get("demo_kwargs") or {}).get("demo_path")
     if demo_path is None:
         return "no demonstrations"
@@ -81,12 +79,10 @@ def profile_demonstrations(task: str) -> str:
 
 @dataclass(frozen=True)
 class Learning:
-    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV (``mark``: a cell learnt from other
-    demonstrations than the task's, :func:`profile_demonstrations`)."""
+    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV."""
 
     label: str
     csv: str = "paper-tasks-cpu.csv"
-    mark: str = ""
 
 
 @dataclass(frozen=True)
@@ -150,10 +146,7 @@ DIPPER_COLUMNS: list[tuple[str, dict[str, Source]]] = [
     ("planner + goal, earlier runs", PLANNER_GOAL),
     (
         "paper's DIPPER",
-        everywhere(
-            "dipper_paper",
-            {task: Learning("dipper_paper-demo1", mark=ONE_DEMONSTRATION) for task in (PUSH, KITCHEN)},
-        ),
+        everywhere("dipper_paper"),
     ),
 ]
 HIERARCHICAL_COLUMNS: list[tuple[str, dict[str, Source]]] = [
@@ -196,7 +189,9 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP, "SAGA", "planner-share-pnp-random-baselines.csv", "/saga/"),
     (PNP, "paper's DIPPER", "planner-share-pnp-random-baselines.csv", "/dipper_paper/"),
     (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
+    (PUSH, "paper's DIPPER", "planner-share-push-random-baselines.csv", "/dipper_paper/"),
     (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
+    (KITCHEN, "paper's DIPPER", "planner-share-kitchen-baselines.csv", "/dipper_paper/"),
     (MAZE_FIXED, "HAC", "planner-share-maze-baselines.csv", "/hac/"),
     (MAZE_FIXED, "SAGA", "planner-share-maze-baselines.csv", "/saga/"),
     (MAZE_FIXED, "PIPER", "planner-share-maze-baselines.csv", "/piper/"),
@@ -249,7 +244,6 @@ ABLATIONS: list[tuple[str, list[tuple[str, Learning]]]] = [
 class Cell:
     success: list[float]  # one per seed
     partial: int  # seeds that had not finished their budget
-    mark: str = ""  # after the seeds: learnt from other demonstrations than the task's
     speeds: list[float] = field(default_factory=list)  # steps/s of wall time of the finished runs that recorded it
 
     def text(self) -> str:
@@ -258,8 +252,8 @@ class Cell:
         values = np.array(self.success)
         partial = "*" if self.partial else ""
         if len(values) == 1:
-            return f"{values[0]:.2f} (1{partial}){self.mark}"
-        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{partial}){self.mark}"
+            return f"{values[0]:.2f} (1{partial})"
+        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{partial})"
 
 
 def learning_rows(name: str) -> dict[tuple[str, str], dict[int, list[dict[str, str]]]]:
@@ -275,7 +269,7 @@ def learning_cell(task: str, source: Learning) -> tuple[Cell, list[plot.Curve]]:
     """The final evaluation within the budget of each seed, and each seed's curve."""
     seeds = learning_rows(source.csv).get((task, source.label), {})
     budget = TASKS[task][0]
-    cell, curves = Cell([], 0, source.mark), []
+    cell, curves = Cell([], 0), []
     for rows in seeds.values():
         within = [row for row in rows if int(row["timesteps"]) <= budget]
         if not within:
@@ -338,9 +332,8 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
             lines.append(f"| `{task}` ({budget // 1000}k, {demonstrations[task]}) | " + " | ".join(cells + anchor) + " |")
         tables.append("\n".join(lines))
     legend = (
-        f"{ONE_DEMONSTRATION}: learnt from the task's one scripted demonstration, not its DART episodes. Methods without "
-        "demonstrations: RAPS, DPO-FLAT, SAC+HER; DAC, which cannot learn without them, takes the task's one scripted "
-        "demonstration where the others take none."
+        "Methods without demonstrations: RAPS, DPO-FLAT, SAC+HER; DAC, which cannot learn without them, takes the task's "
+        "one scripted demonstration where the others take none."
     )
     return "\n\n".join([*tables, legend]), csv_rows, panels
 
