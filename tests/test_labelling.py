@@ -119,6 +119,13 @@ def test_pending_pairs_count_against_the_label_budget(tmp_path):
     assert np.isnan(labels[0]) and np.array_equal(labels[1:], SCRIPT_LABELER.label(random_pairs(4, seed=1))[1:])
 
 
+def test_a_hand_over_record_without_its_arrays_is_named_with_the_fix(tmp_path):
+    queue = LabelQueue(tmp_path)
+    np.savez(queue.handed_path, pair_id=np.arange(2))  # edited by hand: no label, no labeller
+    with pytest.raises(ValueError, match=r"Malformed hand-over record .*: missing \['label', 'labeller'\]\. Delete it"):
+        queue.read_handed()
+
+
 def test_reuse_labels_given_as_a_string_is_refused(tmp_path):
     # "False" would be on: a restarted run would take the labels in the directory that it was told to leave.
     with pytest.raises(ValueError, match="reuse_labels must be True or False, got 'False'"):
@@ -572,8 +579,10 @@ def test_the_label_queue_of_a_preference_source(spec, directory):
 @pytest.mark.tools
 @pytest.mark.parametrize("text", ["", "host:", "50OO", "localhost:70000", "-1"])
 def test_a_bad_label_page_address_names_the_flag(text):
-    with pytest.raises(ValueError, match="--label-page takes"):
+    with pytest.raises(ValueError, match="--label-page takes") as error:
         split_run_control(["--label-page", text])
+    # The page is for this machine: its advice is an SSH tunnel, not serving on every interface.
+    assert "forward the port over SSH" in str(error.value) and "0.0.0.0" not in str(error.value)
 
 
 @pytest.mark.tools

@@ -71,12 +71,13 @@ def save_npz(path: PathLike, arrays: dict[str, np.ndarray]) -> Path:
     return write_atomically(npz_path(path), lambda file: np.savez_compressed(file, **arrays))  # type: ignore[arg-type]
 
 
-def read_npz(path: PathLike, what: str, fix: str = "") -> dict[str, np.ndarray]:
+def read_npz(path: PathLike, what: str, fix: str = "", required: Iterable[str] = ()) -> dict[str, np.ndarray]:
     """Every array of the npz file at ``path``, read without pickle.
 
     :param path: the file
     :param what: what the file is, for messages (``"demonstration file"``)
     :param fix: what the user can do about a bad file, appended to every message
+    :param required: the arrays the file must hold (one missing is a malformed file, not a bare ``KeyError``)
     :raises FileNotFoundError: no file at ``path``
     :raises ValueError: anything else: not an npz archive, truncated, or holding pickled objects
     """
@@ -110,6 +111,9 @@ def read_npz(path: PathLike, what: str, fix: str = "") -> dict[str, np.ndarray]:
     not_arrays = [key for key, value in arrays.items() if not isinstance(value, np.ndarray)]
     if not_arrays:
         raise ValueError(f"Malformed {what} {path}: members {not_arrays} are not .npy arrays.{advice}")
+    missing = [key for key in required if key not in arrays]
+    if missing:
+        raise ValueError(f"Malformed {what} {path}: missing {missing}.{advice}")
     return arrays
 
 

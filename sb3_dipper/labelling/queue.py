@@ -204,7 +204,12 @@ class LabelQueue:
     def read_handed(self) -> dict[str, np.ndarray]:
         if not self.handed_path.exists():
             return {"pair_id": np.zeros(0, np.int64), "label": np.zeros(0, np.float32), "labeller": np.zeros(0, np.int8)}
-        return read_npz(self.handed_path, "hand-over record", "Delete it: training writes it again.")
+        return read_npz(
+            self.handed_path,
+            "hand-over record",
+            "Delete it: training writes it again.",
+            required=("pair_id", "label", "labeller"),
+        )
 
     def append_handed(self, pair_ids: np.ndarray, labels: np.ndarray, labeller: np.ndarray) -> None:
         record = self.read_handed()

@@ -257,7 +257,10 @@ def parse_label_page(text: str) -> tuple[str, int]:
     """``--label-page``'s ``[HOST:]PORT`` as ``(host, port)``; the host defaults to this machine only."""
     host, _, port = text.rpartition(":")
     if not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise ValueError(f"--label-page takes [HOST:]PORT, for example 5000 or 0.0.0.0:5000 (0: a free port), got {text!r}")
+        raise ValueError(
+            "--label-page takes [HOST:]PORT, for example 5000 or 127.0.0.1:5000 (0: a free port; from another machine, "
+            f"forward the port over SSH), got {text!r}"
+        )
     return host or "127.0.0.1", int(port)
 
 

@@ -305,11 +305,7 @@ def recorded_evaluations(run_folder: Path) -> dict[str, np.ndarray] | None:
         "short): restore it from a copy of the run folder, or delete it to resume with the evaluations from the "
         "checkpoint on only."
     )
-    arrays = read_npz(path, "evaluation record", fix)
-    missing = [key for key in ("timesteps", "results", "ep_lengths") if key not in arrays]
-    if missing:
-        raise ValueError(f"Malformed evaluation record {path}: missing {missing}. {fix}")
-    return arrays
+    return read_npz(path, "evaluation record", fix, required=("timesteps", "results", "ep_lengths"))
 
 
 def set_aside_part(run_folder: Path) -> None:
