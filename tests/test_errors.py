@@ -35,6 +35,40 @@ class DenseGoalEnv(gym.Env):
         return -np.linalg.norm(achieved_goal - desired_goal, axis=-1)
 
 
+class GoalEnvWithoutReward(gym.Env):
+    """A goal env with everything the algorithms need but a vectorised ``compute_reward(achieved, desired, info)``."""
+
+    observation_space = DenseGoalEnv.observation_space
+    action_space = DenseGoalEnv.action_space
+    spec = gym.envs.registration.EnvSpec("GoalWithoutReward-v0", max_episode_steps=10)
+    subgoal_space = DenseGoalEnv.subgoal_space
+
+
+class GoalEnvWithTwoArgumentReward(GoalEnvWithoutReward):
+    def compute_reward(self, achieved_goal, desired_goal):
+        return -(np.linalg.norm(achieved_goal - desired_goal, axis=-1) > 0.1).astype(np.float64)
+
+
+class GoalEnvWithUnbatchedReward(GoalEnvWithoutReward):
+    def compute_reward(self, achieved_goal, desired_goal, info):
+        return -float(np.linalg.norm(achieved_goal - desired_goal) > 0.1)
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+@pytest.mark.parametrize(
+    "env_class, failure",
+    [
+        (GoalEnvWithoutReward, "failed: .*compute_reward"),
+        (GoalEnvWithTwoArgumentReward, "failed: .*positional argument"),
+        (GoalEnvWithUnbatchedReward, r"gave rewards of shape \(\)"),
+    ],
+)
+def test_an_env_without_a_vectorised_compute_reward_is_refused_at_construction(model_class, env_class, failure):
+    # HER calls compute_reward only at its first update, after learning_starts, and failed there inside SB3.
+    with pytest.raises(ValueError, match=rf"{model_class.__name__} needs the goal env's compute_reward.*{failure}"):
+        any_tiny_model(model_class, env_class())
+
+
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_a_non_goal_env_is_refused(model_class):
     with pytest.raises(ValueError, match="needs a goal-conditioned env"):
@@ -63,11 +97,47 @@ def test_a_mismatched_env_at_load_is_refused(model_class, tmp_path, maze_env):
 
 
 # DAC and DPOFlat predict with SB3's policies, which fail on a flat observation as SB3's SAC does (an IndexError).
-@pytest.mark.parametrize("model_class", OPTION_ALGORITHMS)
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_predict_on_a_flat_observation_names_the_dict_it_needs(model_class, maze_env):
     model = any_tiny_model(model_class, maze_env)
     with pytest.raises(TypeError, match="goal env's Dict observations, got ndarray"):
         model.predict(np.zeros(maze_env.observation_space["observation"].shape))
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_predict_names_the_key_of_a_bad_observation(model_class, maze_env):
+    model = any_tiny_model(model_class, maze_env)
+    observation = maze_env.reset()
+    without_goal = {key: value for key, value in observation.items() if key != "desired_goal"}
+    with pytest.raises(ValueError, match=r"keys must be the env's .*; it lacks \['desired_goal'\]"):
+        model.predict(without_goal)
+    with pytest.raises(ValueError, match=r"it has keys the env does not: \['extra'\]"):
+        model.predict({**observation, "extra": np.zeros(1)})
+    # One env's observation with twice its entries (it was named as another key's mistake).
+    doubled = {**observation, "observation": np.zeros(2 * observation["observation"].shape[-1])}
+    with pytest.raises(ValueError, match=r"observation\['observation'\] has shape \(8,\), the env's is \(4,\)"):
+        model.predict(doubled)
+    unbatched_goal = {**observation, "desired_goal": observation["desired_goal"][0]}
+    with pytest.raises(ValueError, match="keys are for different numbers of envs"):
+        model.predict(unbatched_goal)
+    nan = {**observation, "observation": np.full_like(observation["observation"], np.nan)}
+    with pytest.raises(ValueError, match="predict's observation key 'observation' holds NaN"):
+        model.predict(nan)
+
+
+@pytest.mark.parametrize("model_class", OPTION_ALGORITHMS)
+def test_predict_refuses_a_state_or_episode_start_of_other_envs(model_class):
+    env = short_maze(n_envs=2)
+    model = any_tiny_model(model_class, env)
+    observation = env.reset()
+    _, state = model.predict(observation)
+    one_env = {key: value[:1] for key, value in observation.items()}
+    with pytest.raises(ValueError, match=r"state must be .* for this observation's 1 env\(s\).*pass state=None"):
+        model.predict(one_env, state=state)
+    # A single flag used to start a new option in every env, cutting the other env's option short.
+    with pytest.raises(ValueError, match="episode_start has 1 entries for 2 envs"):
+        model.predict(observation, state=state, episode_start=np.array([True]))
+    model.predict(observation, state=state, episode_start=np.array([True, False]))
 
 
 def test_bad_dipper_switches_are_refused(maze_env):

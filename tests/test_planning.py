@@ -825,6 +825,25 @@ def test_a_model_saved_before_planner_kwargs_loads_and_plans_as_it_did(tmp_path)
     assert DIPPER.load(tmp_path / "again.zip").planner.lookahead == 2
 
 
+def test_planner_kwargs_given_to_load_keep_the_saved_graph_only_where_its_voxels_are_theirs(tmp_path):
+    model = tiny_model(DIPPER, one_room_maze(), planner_kwargs=dict(mode="subgoal", resolution=0.5))
+    grid_graph(model)
+    model.save(tmp_path / "model.zip")
+
+    same_voxels = DIPPER.load(tmp_path / "model.zip", planner_kwargs={"lookahead": 2})
+    np.testing.assert_array_equal(same_voxels.planner.graph.edges, model.planner.graph.edges)
+
+    with pytest.warns(UserWarning, match=r"voxels of 0\.5 over .*ask for 2 over .*replaced by an empty graph"):
+        coarser = DIPPER.load(tmp_path / "model.zip", planner_kwargs={"resolution": 2.0})
+    assert coarser.planner.graph.resolution == 2.0 and len(coarser.planner.graph) == 0
+    assert coarser.planner_kwargs["resolution"] == 2.0
+
+    # Without planning the model keeps no graph, so that it plans nowhere and exports.
+    off = DIPPER.load(tmp_path / "model.zip", planner_kwargs={"mode": "off"})
+    assert off.planner.graph is None and not off.planner.plans_in_predict
+    off.export_policy()
+
+
 # ------------------------------------------------------------------------------- switch_kwargs, and the form before it
 
 OLD_SWITCHES = dict(nll_coef=1.0, hindsight_actions=True, truncate_at_goal=True, value_reg="score")

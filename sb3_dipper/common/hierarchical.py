@@ -61,6 +61,7 @@ from sb3_dipper.common.option_env import DictObs, OptionVecEnv, PrimitiveTransit
 from sb3_dipper.common.subgoals import SubgoalSpace, check_subgoal_space, resolve_subgoal_space
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import (
+    EnvGoalReward,
     InvalidSetting,
     as_entropy_coefficient,
     as_float,
@@ -281,6 +282,7 @@ class HierarchicalAlgorithm(CheckedLoading):
             self.subgoal_space = resolve_subgoal_space(self.env, self.subgoal_space)
             self.max_episode_steps = self.max_episode_steps or self._episode_length(self.env)
             self._warn_if_options_outlast_episodes()
+            EnvGoalReward(self.env, type(self).__name__)
         assert self.subgoal_space is not None, "a saved model always carries its subgoal space"
         check_subgoal_space(self.subgoal_space, self.observation_space)
         cloning = self.demo_kwargs["demo_path"] is not None

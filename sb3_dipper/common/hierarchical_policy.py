@@ -21,12 +21,12 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.utils import is_vectorized_observation
 from stable_baselines3.sac.policies import SACPolicy
 
 from sb3_dipper.common.low_level import SubgoalNormalizer
 from sb3_dipper.common.option_env import DictObs, low_level_observation
 from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.validation import checked_goal_observation
 
 # Higher-level actions in [-1, 1]^d for a batch of (normalised) observations: (observation, deterministic) -> actions.
 HighLevelActions = Callable[[DictObs, bool], np.ndarray]
@@ -136,18 +136,19 @@ class HierarchicalPolicy:
         :param episode_start: envs whose episode just started start a new option
         :param deterministic: whether both levels act deterministically
         """
-        if not isinstance(observation, dict):
-            raise TypeError(f"A hierarchical policy acts on a goal env's Dict observations, got {type(observation).__name__}")
-        vectorized = is_vectorized_observation(observation, self.observation_space)  # type: ignore[arg-type]
-        batch = {key: np.asarray(value).reshape(-1, *self.observation_space[key].shape) for key, value in observation.items()}  # type: ignore[misc]
+        batch, vectorized = checked_goal_observation(observation, self.observation_space)
         n_envs = batch["desired_goal"].shape[0]
         if state is None:
             subgoals, steps_left = np.zeros((n_envs, self.subgoal_space.dim), dtype=np.float32), np.zeros(n_envs, np.int64)
         else:
-            subgoals, steps_left = np.array(state[0], dtype=np.float32), np.array(state[1], dtype=np.int64)
+            subgoals, steps_left = self._checked_state(state, n_envs)
         new_option = steps_left <= 0
         if episode_start is not None:
-            new_option |= np.asarray(episode_start, dtype=bool).reshape(-1)
+            starts = np.asarray(episode_start, dtype=bool).reshape(-1)
+            if starts.size != n_envs:
+                # A single flag would start a new option in every env, cutting the others' options short.
+                raise ValueError(f"predict: episode_start has {starts.size} entries for {n_envs} envs: give one per env")
+            new_option |= starts
         if new_option.any():
             high_actions = self.high_level(batch, deterministic)
             subgoals[new_option] = self.subgoal_space.to_world(high_actions[new_option])
@@ -159,3 +160,16 @@ class HierarchicalPolicy:
         if not vectorized:
             actions = actions.squeeze(axis=0)
         return actions, (subgoals, steps_left - 1)
+
+    def _checked_state(self, state: tuple[np.ndarray, ...], n_envs: int) -> OptionState:
+        """``state`` as ``(subgoals, steps_left)`` arrays of their own, refused unless it is the options of ``n_envs``
+        envs in this policy's subgoal space."""
+        expected = (n_envs, self.subgoal_space.dim)
+        given = [np.shape(part) for part in state]
+        if len(state) != 2 or given[0] != expected or given[1] != (n_envs,):
+            raise ValueError(
+                f"predict: state must be the (subgoals, steps_left) the previous call returned, of shapes {expected} "
+                f"and ({n_envs},) for this observation's {n_envs} env(s), got shapes {', '.join(map(str, given))}; "
+                "pass state=None when the envs change (every env starts a new option)"
+            )
+        return np.array(state[0], dtype=np.float32), np.array(state[1], dtype=np.int64)

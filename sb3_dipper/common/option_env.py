@@ -30,6 +30,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.common.validation import check_finite
 
 DictObs = dict[str, np.ndarray]
 
@@ -69,23 +70,6 @@ def low_level_observation(observation: DictObs, subgoals: np.ndarray, subgoal_sp
         "achieved_goal": np.asarray(subgoal_space.project(observation["achieved_goal"]), dtype=np.float32),
         "desired_goal": np.asarray(subgoals, dtype=np.float32),
     }
-
-
-def check_finite(observation: DictObs, env_indices: np.ndarray | None = None, source: str = "Observation") -> None:
-    """Refuse NaN or infinite observations with an error that names the key and the envs.
-
-    :param observation: one row per env
-    :param env_indices: the env index of each row (default: row ``i`` is env ``i``)
-    :param source: what the observations are, for the message
-    """
-    for key, value in observation.items():
-        if not np.all(np.isfinite(value)):
-            bad_rows = np.flatnonzero(~np.all(np.isfinite(value.reshape(value.shape[0], -1)), axis=1))
-            bad_envs = bad_rows if env_indices is None else np.asarray(env_indices)[bad_rows]
-            raise ValueError(
-                f"{source} key {key!r} holds NaN or infinite values (env indices {bad_envs.tolist()}). "
-                "Fix the environment, or wrap it in stable_baselines3.common.vec_env.VecCheckNan to find the source."
-            )
 
 
 class LevelVecEnv(VecEnv):

@@ -22,6 +22,7 @@ training and, if asked, in :meth:`predict`.
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NamedTuple
@@ -80,6 +81,10 @@ class SubgoalGraph:
 
     def __len__(self) -> int:
         return int(self.node_ids.size)
+
+    def has_voxels_of(self, subgoal_space: SubgoalSpace, resolution: float) -> bool:
+        """Whether its voxels are those of ``resolution`` over ``subgoal_space``."""
+        return self.resolution == float(resolution) and self.subgoal_space.same_as(subgoal_space)
 
     def __getstate__(self) -> dict:
         # The distance cache is recomputed on demand; saved models do not need to carry it.
@@ -248,10 +253,28 @@ class SubgoalPlanner:
         return {**self.__dict__, "_trajectories_since_rebuild": 0}
 
     def setup(self, subgoal_space: SubgoalSpace) -> None:
-        """Plan in ``subgoal_space``: an empty graph, unless the planner has one (a saved model's)."""
+        """Plan in ``subgoal_space``: an empty graph, unless the planner has one (a saved model's) with its voxels.
+
+        A saved graph whose voxels are not those of the settings (``planner_kwargs`` given to ``load`` with another
+        ``resolution``, or another subgoal space) is replaced by an empty one, with a warning: its voxels cannot be
+        redrawn without the trajectories, and it is rebuilt from the stored ones after
+        :data:`GRAPH_REBUILD_TRAJECTORIES` more. With ``mode="off"`` the planner keeps no graph.
+        """
         self.subgoal_space = subgoal_space
-        if self.mode != "off" and self.graph is None:
-            self.graph = SubgoalGraph(subgoal_space, self.resolution or subgoal_space.threshold)
+        resolution = self.resolution or subgoal_space.threshold
+        if self.graph is not None and self.mode != "off" and not self.graph.has_voxels_of(subgoal_space, resolution):
+            warnings.warn(
+                f"planner_kwargs: the saved planning graph has voxels of {self.graph.resolution:g} over "
+                f"{self.graph.subgoal_space.describe()}, the settings ask for {resolution:g} over "
+                f"{subgoal_space.describe()}; it is replaced by an empty graph, rebuilt from the stored trajectories "
+                f"after {GRAPH_REBUILD_TRAJECTORIES} more (nothing is planned until then)",
+                stacklevel=2,
+            )
+            self.graph = None
+        if self.mode == "off":
+            self.graph = None
+        elif self.graph is None:
+            self.graph = SubgoalGraph(subgoal_space, resolution)
         self._trajectories_since_rebuild = 0
 
     @property

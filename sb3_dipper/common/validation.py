@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3 import HerReplayBuffer
 from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -61,6 +62,84 @@ def check_goal_observation_space(observation_space: spaces.Space, algorithm: str
         )
 
 
+def check_finite(
+    observation: dict[str, np.ndarray], env_indices: np.ndarray | None = None, source: str = "Observation"
+) -> None:
+    """Refuse NaN or infinite observations with an error that names the key and the envs.
+
+    :param observation: one row per env
+    :param env_indices: the env index of each row (default: row ``i`` is env ``i``)
+    :param source: what the observations are, for the message
+    """
+    for key, value in observation.items():
+        if not np.all(np.isfinite(value)):
+            bad_rows = np.flatnonzero(~np.all(np.isfinite(value.reshape(value.shape[0], -1)), axis=1))
+            bad_envs = bad_rows if env_indices is None else np.asarray(env_indices)[bad_rows]
+            raise ValueError(
+                f"{source} key {key!r} holds NaN or infinite values (env indices {bad_envs.tolist()}). "
+                "Fix the environment, or wrap it in stable_baselines3.common.vec_env.VecCheckNan to find the source."
+            )
+
+
+def checked_goal_observation(observation: Any, observation_space: spaces.Dict) -> tuple[dict[str, np.ndarray], bool]:
+    """An observation given to ``predict`` as one row per env, and whether it came batched; refused, naming the key,
+    unless it has exactly the goal env's keys, each of the space's shape (one env) or of ``(n_envs, *shape)`` with the
+    same ``n_envs``, all finite.
+
+    :param observation: what ``predict`` got
+    :param observation_space: the model's (the env's) Dict observation space
+    """
+    if not isinstance(observation, dict):
+        raise TypeError(f"predict acts on a goal env's Dict observations, got {type(observation).__name__}")
+    expected = list(observation_space.spaces)
+    if set(observation) != set(expected):
+        missing = [key for key in expected if key not in observation]
+        unknown = [key for key in observation if key not in observation_space.spaces]
+        raise ValueError(
+            f"predict: the observation's keys must be the env's {expected}"
+            + (f"; it lacks {missing}" if missing else "")
+            + (f"; it has keys the env does not: {unknown}" if unknown else "")
+        )
+    batch: dict[str, np.ndarray] = {}
+    batch_sizes: dict[str, int | None] = {}
+    for key, space in observation_space.spaces.items():
+        value, shape = np.asarray(observation[key]), tuple(space.shape or ())
+        if not np.issubdtype(value.dtype, np.number):
+            raise TypeError(f"predict: observation[{key!r}] must be numbers, got an array of {value.dtype}")
+        if value.shape == shape:
+            batch_sizes[key] = None
+        elif value.shape[1:] == shape and value.ndim == len(shape) + 1:
+            batch_sizes[key] = value.shape[0]
+        else:
+            raise ValueError(
+                f"predict: observation[{key!r}] has shape {value.shape}, the env's is {shape}: pass {shape} for one env "
+                f"or (n_envs, {', '.join(map(str, shape))}) for several"
+            )
+        batch[key] = value.reshape(-1, *shape)
+    if len(set(batch_sizes.values())) > 1:
+        sizes = ", ".join(f"{key}: {'one env' if size is None else f'{size} envs'}" for key, size in batch_sizes.items())
+        raise ValueError(f"predict: the observation's keys are for different numbers of envs ({sizes})")
+    check_finite(batch, source="predict's observation")
+    return batch, next(iter(batch_sizes.values())) is not None
+
+
+class CheckedPredict:
+    """Mixin for an SB3 algorithm of goal envs whose ``predict`` is SB3's: the observation is checked first
+    (:func:`checked_goal_observation`), so that a wrong key, shape or a NaN is named instead of failing inside torch."""
+
+    observation_space: spaces.Space
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        checked_goal_observation(observation, self.observation_space)  # type: ignore[arg-type]
+        return super().predict(observation, state, episode_start, deterministic)  # type: ignore[misc]
+
+
 def constructor_parameters(algorithm: type) -> dict[str, inspect.Parameter]:
     """The parameters of ``algorithm(...)``: those of its ``__init__`` after ``self``."""
     parameters = list(inspect.signature(algorithm.__init__).parameters.values())  # type: ignore[misc]
@@ -107,38 +186,76 @@ def check_dict_keys(parameter: str, given: Iterable[str], keys: Collection[str])
             raise TypeError(f"{parameter} got an unexpected key {key!r}; {hint}")
 
 
-def sparse_goal_reached_fn(venv: VecEnv) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """``goal_reached(achieved, desired)`` from the env's own vectorised ``compute_reward``.
+class EnvGoalReward:
+    """The env's ``compute_reward(achieved, desired, infos)`` called as SB3's ``HerReplayBuffer`` calls it (first env,
+    a batch of goals), probed once at construction on a batch of 64 goal pairs.
+
+    HER reaches ``compute_reward`` only at its first gradient step, after ``learning_starts``: a missing one, one
+    without ``info`` or one that returns a single float for a batch failed there, inside SB3. The probe refuses such an
+    env when the algorithm is built, naming what it needs.
+
+    :param venv: the (vectorised) goal env
+    :param algorithm: the algorithm's name, for the message
+    """
+
+    def __init__(self, venv: VecEnv, algorithm: str) -> None:
+        self.venv = venv
+        self.goal_dim = venv.observation_space["achieved_goal"].shape[0]  # type: ignore[index]
+        need = (
+            f"{algorithm} needs the goal env's compute_reward(achieved_goal, desired_goal, info), vectorised over a "
+            "batch of goals as gymnasium-robotics envs have it (SB3's HerReplayBuffer relabels with it)"
+        )
+        # Goal pairs from far apart to identical: a sparse reward takes one value for reached goals and one for the rest.
+        rng = np.random.default_rng(0)
+        self.probe_achieved = rng.normal(size=(64, self.goal_dim)).astype(np.float32)
+        spread = np.logspace(-4, 2, 64, dtype=np.float32)[:, None]
+        desired = self.probe_achieved + spread * rng.normal(size=(64, self.goal_dim)).astype(np.float32)
+        try:
+            self.probe_rewards = self(self.probe_achieved, desired)
+        except (AttributeError, TypeError) as error:
+            raise ValueError(f"{need}, but calling it on a batch of 64 goal pairs failed: {error}") from error
+        if self.probe_rewards.shape != (64,):
+            raise ValueError(f"{need}, but a batch of 64 goal pairs gave rewards of shape {self.probe_rewards.shape}.")
+
+    def __call__(self, achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        infos: list[dict[str, Any]] = [{} for _ in range(achieved.shape[0])]
+        rewards = self.venv.env_method("compute_reward", achieved, desired, infos, indices=[0])[0]
+        return np.asarray(rewards, dtype=np.float64)
+
+
+def check_compute_reward_for_her(model: Any) -> None:
+    """Probe the env's ``compute_reward`` (:class:`EnvGoalReward`) of a flat ``model`` that relabels with SB3's
+    ``HerReplayBuffer``; one without an env or without HER does not call it."""
+    buffer_class = model.replay_buffer_class
+    if model.env is not None and isinstance(buffer_class, type) and issubclass(buffer_class, HerReplayBuffer):
+        EnvGoalReward(model.env, type(model).__name__)
+
+
+GoalReachedFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def sparse_goal_reached_fn(venv: VecEnv, algorithm: str = "Preference labelling") -> GoalReachedFn:
+    """``goal_reached(achieved, desired)`` from the env's own vectorised ``compute_reward`` (:class:`EnvGoalReward`).
 
     A goal counts as reached where the reward equals the reward of an achieved goal equal to the desired one, so
     any sparse convention (-1/0 or 0/1) works. Dense rewards have no such level and are refused.
+
+    :param venv: the (vectorised) goal env
+    :param algorithm: the algorithm's name, for the message
     """
-    goal_dim = venv.observation_space["achieved_goal"].shape[0]  # type: ignore[index]
-
-    def rewards(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
-        infos: list[dict[str, Any]] = [{} for _ in range(achieved.shape[0])]
-        return np.asarray(venv.env_method("compute_reward", achieved, desired, infos, indices=[0])[0], dtype=np.float64)
-
-    # Goal pairs from far apart to identical: a sparse reward takes one value for reached goals and one for the rest.
-    rng = np.random.default_rng(0)
-    achieved = rng.normal(size=(64, goal_dim)).astype(np.float32)
-    desired = achieved + np.logspace(-4, 2, 64, dtype=np.float32)[:, None] * rng.normal(size=(64, goal_dim)).astype(np.float32)
-    probe = rewards(achieved, desired)
-    if probe.shape != (64,):
-        raise ValueError(
-            f"The env's compute_reward must be vectorised (a batch of 64 goals gave shape {probe.shape}); "
-            "SB3's HerReplayBuffer and the preference labels both need that."
-        )
+    rewards = EnvGoalReward(venv, algorithm)
+    achieved = rewards.probe_achieved
     success_reward = rewards(achieved[:1], achieved[:1])[0]
-    if np.unique(np.append(probe, success_reward)).size > 2:
+    if np.unique(np.append(rewards.probe_rewards, success_reward)).size > 2:
         raise ValueError(
             "Preference labels need a sparse goal reward (one value when the goal is reached, one otherwise), "
-            f"but compute_reward gave {np.unique(probe).size} different values on 64 goal pairs: is the reward dense?"
+            f"but compute_reward gave {np.unique(rewards.probe_rewards).size} different values on 64 goal pairs: "
+            "is the reward dense?"
         )
 
     def goal_reached(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
-        flat_achieved = achieved.reshape(-1, goal_dim)
-        flat_desired = np.broadcast_to(desired, achieved.shape).reshape(-1, goal_dim)
+        flat_achieved = achieved.reshape(-1, rewards.goal_dim)
+        flat_desired = np.broadcast_to(desired, achieved.shape).reshape(-1, rewards.goal_dim)
         reached = np.isclose(rewards(flat_achieved, flat_desired), success_reward)
         return reached.reshape(achieved.shape[:-1])
 

@@ -83,7 +83,9 @@ from sb3_dipper.common.validation import (
     as_float,
     as_optional_float,
     as_optional_int,
+    check_compute_reward_for_her,
     check_flat_sac_settings,
+    checked_goal_observation,
     policy_class_and_goal_env,
 )
 from sb3_dipper.dac.policies import Discriminator, MlpPolicy, MultiInputPolicy
@@ -477,6 +479,7 @@ class DAC(CheckedLoading, SAC):
 
     def _setup_model(self) -> None:
         self._check_settings()
+        check_compute_reward_for_her(self)
         env_observation_space = self.observation_space
         network_space = self._network_observation_space()
         self._predict_only = self.env is None
@@ -585,7 +588,12 @@ class DAC(CheckedLoading, SAC):
         episode_start: np.ndarray | None = None,
         deterministic: bool = False,
     ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
-        """SAC's action; the env's observations never come from an absorbing state, so their indicator is 0."""
+        """SAC's action; the env's observations never come from an absorbing state, so their indicator is 0. The
+        observation is checked first (:func:`~sb3_dipper.common.validation.checked_goal_observation`)."""
+        env_keys = observation
+        if isinstance(observation, dict):
+            env_keys = {key: value for key, value in observation.items() if key != ABSORBING_KEY}
+        checked_goal_observation(env_keys, self.observation_space)  # type: ignore[arg-type]
         if self.absorbing_states and isinstance(observation, dict) and ABSORBING_KEY not in observation:
             observation = with_absorbing_indicator({key: np.asarray(value) for key, value in observation.items()}, 0.0)
         return super().predict(observation, state, episode_start, deterministic)

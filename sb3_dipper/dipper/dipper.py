@@ -391,7 +391,7 @@ class DIPPER(PreferenceLearner, HierarchicalAlgorithm):
         ).to(self.device)
         self._goal_reached, labeler = None, None
         if self.env is not None:  # a model without an env labels nothing until it gets one
-            self._goal_reached = sparse_goal_reached_fn(self.env)
+            self._goal_reached = sparse_goal_reached_fn(self.env, type(self).__name__)
             labeler = preference_labeler(
                 self.preference_source,
                 self.env,

@@ -44,6 +44,8 @@ from sb3_dipper.common.preferences import PreferenceSource, SegmentPairSampler, 
 from sb3_dipper.common.preferences import sample_segment_pairs as sample_segment_pairs  # public here first
 from sb3_dipper.common.trajectories import TrajectoryBuffer
 from sb3_dipper.common.validation import (
+    CheckedPredict,
+    EnvGoalReward,
     as_float,
     as_int,
     as_optional_int,
@@ -83,7 +85,7 @@ class _TrajectorySink:
         self.buffer.add(obs, action, next_obs["achieved_goal"], done)
 
 
-class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
+class DPOFlat(CheckedPredict, PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
     """DPO-FLAT (the DIPPER paper's flat baseline): a squashed-Gaussian policy trained only by token-level DPO.
 
     Collection follows SB3's off-policy loop (``num_timesteps`` counts primitive steps, ``rollout/success_rate`` and
@@ -208,6 +210,8 @@ class DPOFlat(PreferenceLearner, CheckedLoading, OffPolicyAlgorithm):
         self.set_random_seed(self.seed)
         self._convert_train_freq()
         if self.env is not None:
+            # Its labeller is built at the first learn; the env's compute_reward is checked now.
+            EnvGoalReward(self.env, type(self).__name__)
             self.max_episode_steps = self.max_episode_steps or episode_length(self.env)
         assert self.max_episode_steps is not None, "a saved model always carries its episode length"
         if self.segment_length > self.max_episode_steps:

@@ -362,7 +362,7 @@ class HAC(HIER):
         self._windows = EpisodeWindows(self.n_envs)
         self._episode_counts = np.zeros(self.n_envs, dtype=np.int64)
         if self.env is not None:
-            self._goal_reached = sparse_goal_reached_fn(self.env)
+            self._goal_reached = sparse_goal_reached_fn(self.env, type(self).__name__)
 
     def learn(
         self: SelfHAC,

@@ -34,7 +34,14 @@ from sb3_dipper.common.demonstrations import demonstrations_for
 from sb3_dipper.common.hierarchical import has_finished_episode
 from sb3_dipper.common.imitation import DEFAULT_DEMO_KWARGS, DemonstrationBuffer, DemoSAC, EnvGoals, checked_demo_kwargs
 from sb3_dipper.common.loading import CheckedLoading, unchanged_on_failure
-from sb3_dipper.common.validation import InvalidSetting, as_int, check_flat_sac_settings, policy_class_and_goal_env
+from sb3_dipper.common.validation import (
+    CheckedPredict,
+    InvalidSetting,
+    as_int,
+    check_compute_reward_for_her,
+    check_flat_sac_settings,
+    policy_class_and_goal_env,
+)
 from sb3_dipper.sac_demo.policies import MlpPolicy, MultiInputPolicy
 
 SelfSACDemo = TypeVar("SelfSACDemo", bound="SACDemo")
@@ -62,7 +69,7 @@ def _cloning_setting(key: str) -> property:
     return property(setting, set_setting, doc=f"``demo_kwargs[{key!r}]``")
 
 
-class SACDemo(CheckedLoading, DemoSAC):
+class SACDemo(CheckedPredict, CheckedLoading, DemoSAC):
     """SAC+HER whose actor also clones Q-filtered demonstrations, as the hierarchies' lower level does (see the module
     docstring). Without ``demo_kwargs["demo_path"]``, SB3's ``SAC``. The SAC parameters are SB3's, with SB3's defaults;
     the demonstration settings are the hierarchies' ``demo_kwargs``, with their defaults.
@@ -219,6 +226,7 @@ class SACDemo(CheckedLoading, DemoSAC):
 
     def _setup_model(self) -> None:
         self._check_settings()
+        check_compute_reward_for_her(self)
         self._predict_only = self.env is None
         if self._predict_only:
             # A model loaded to predict needs no training data (and SB3 builds a HerReplayBuffer only with an env).
