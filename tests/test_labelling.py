@@ -15,9 +15,12 @@ import urllib.request
 import warnings
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from gymnasium.wrappers import TimeLimit
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from sb3_dipper import DIPPER, PIPER, DPOFlat
@@ -30,8 +33,11 @@ from sb3_dipper.common.preferences import (
     add_new_labels,
     pairs_due,
 )
+from sb3_dipper.envs import PointMazeFourRoomsEnv
 from sb3_dipper.labelling.app import MAX_BODY_BYTES, LabellingServer, create_app, serve_in_background
-from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
+from sb3_dipper.labelling.drawable import DRAWN_ENVS
+from sb3_dipper.labelling.queue import ANSWERS, PERSON, SCRIPT, LabelQueue
+from sb3_dipper.labelling.render import PairRenderer
 from sb3_dipper.labelling.sources import (
     PAIRS_A_PERSON_LABELS_A_MINUTE,
     PEOPLE_PAIRS_WARNING_THRESHOLD,
@@ -72,8 +78,9 @@ def random_pairs(n_pairs: int, seed: int = 0, length: int = 3) -> TrajectoryPair
     )
 
 
-def people(directory, **kwargs) -> QueuedPreferenceSource:
-    return preference_source_from(QueuedPreferenceSource(str(directory), **kwargs), SCRIPT_LABELER)
+def people(directory, env=None, **kwargs) -> QueuedPreferenceSource:
+    """A people source on ``directory``; with ``env`` (a VecEnv), the queue records it for the page to draw."""
+    return preference_source_from(QueuedPreferenceSource(str(directory), **kwargs), SCRIPT_LABELER, env)
 
 
 # ---------------------------------------------------------------------------------------------------- the source
@@ -217,15 +224,15 @@ def test_label_file_from_a_killed_writer_is_old_or_new(tmp_path):
         queue.labels_path.unlink()
 
 
-def test_a_restarted_source_and_page_resume(tmp_path):
-    first = people(tmp_path)
+def test_a_restarted_source_and_page_resume(tmp_path, maze_env):
+    first = people(tmp_path, maze_env)
     first.label(random_pairs(4))
     queue = LabelQueue(tmp_path)
     queue.record_answer(1, 1.0)
     queue.record_answer(2, float("nan"))
 
     # A new training process adopts the waiting pairs, gets the label given meanwhile, and uses fresh ids.
-    second = people(tmp_path)
+    second = people(tmp_path, maze_env)
     assert second.pending == 2
     assert second.collect().labels.tolist() == [1.0]
     second.label(random_pairs(1))
@@ -237,17 +244,21 @@ def test_a_restarted_source_and_page_resume(tmp_path):
     again = LabellingServer(tmp_path, show_skipped=True)
     assert again.waiting() == [0, 2, 3, 4]
     again.next_pair("tab")
+    for side in ("left", "right"):  # the page shows the pair first
+        again.image(2, side)
     assert again.answer(2, "tab", "left")[1] == 200
     assert queue.answers().as_dict()[2] == 1.0
 
 
-def test_two_tabs_never_label_one_pair_twice(tmp_path):
-    people(tmp_path).label(random_pairs(3))
+def test_two_tabs_never_label_one_pair_twice(tmp_path, maze_env):
+    people(tmp_path, maze_env).label(random_pairs(3))
     client = create_app(tmp_path).test_client()
     first = client.post("/api/next", json={"client": "a"}).get_json()["pair_id"]
     second = client.post("/api/next", json={"client": "b"}).get_json()["pair_id"]
     assert first == 0 and second == 1  # each tab gets its own pair
     assert client.post("/api/next", json={"client": "a"}).get_json()["pair_id"] == 0  # a reload keeps the tab's pair
+    for side in ("left", "right"):  # tab a shows its pair
+        assert client.get(f"/api/pair/0/{side}.png").status_code == 200
     assert client.post("/api/label", json={"pair_id": 0, "client": "b", "answer": "right"}).status_code == 409
     assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "left"}).status_code == 200
     assert client.post("/api/label", json={"pair_id": 0, "client": "a", "answer": "right"}).status_code == 409
@@ -500,6 +511,8 @@ def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
         for side in ("left", "right"):
             image = chromium.find_element(By.ID, f"{side}-img")
             wait.until(lambda _, image=image: chromium.execute_script(loaded, image))
+        # The buttons are enabled once both pictures have loaded.
+        wait.until(lambda browser: browser.find_element(By.ID, "btn-left").is_enabled())
         return int(chromium.find_element(By.ID, "pair-id").text)
 
     answers = {}
@@ -538,10 +551,6 @@ def test_labelling_page_in_a_browser_trains_dipper(chromium, page):
 
 def test_fetch_pairs_are_drawn_as_frame_strips():
     """Fetch: the object put back where each option left it, rendered headless, one strip per trajectory."""
-    import gymnasium as gym
-
-    from sb3_dipper.labelling.render import PairRenderer
-
     env = gym.make("FetchPickAndPlace-v4")
     obs, _ = env.reset(seed=0)
     length = 3
@@ -554,6 +563,61 @@ def test_fetch_pairs_are_drawn_as_frame_strips():
     env.close()
     for png in pictures:
         assert png.startswith(b"\x89PNG") and len(png) > 10_000
+
+
+class EnvWithoutRenderMode(gym.Env):
+    """An env whose constructor takes no ``render_mode``: the page cannot make it to draw its pairs."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,))
+    action_space = gym.spaces.Box(-1.0, 1.0, (2,))
+
+
+def env_without_render_mode():
+    env_id = "LabellingTestWithoutRenderMode-v0"
+    if env_id not in gym.registry:
+        gym.register(env_id, entry_point=EnvWithoutRenderMode)
+    return make_vec_env(env_id)
+
+
+@pytest.mark.parametrize(
+    ("make_env", "reason"),
+    [
+        (lambda: make_vec_env(PointMazeFourRoomsEnv), "the pairs of this env (it has no registered id"),
+        (env_without_render_mode, "gymnasium.make('LabellingTestWithoutRenderMode-v0', render_mode='rgb_array') failed"),
+        (lambda: make_vec_env("CartPole-v1"), "env 'CartPole-v1' (CartPoleEnv is not a kind of env the page draws)"),
+        (lambda: make_vec_env("FetchFourRoomMaze-v0"), "(FetchFourRoomMazeEnv's maze is not a gymnasium-robotics maze map"),
+    ],
+    ids=["unregistered", "no render_mode", "not a robotics task", "the Fetch maze"],
+)
+def test_people_are_not_asked_about_pairs_the_page_cannot_draw(tmp_path, make_env, reason):
+    """Refused at setup: the page would show two empty boxes, and the answers given to them would train the model."""
+    env = make_env()
+    for spec in (f"people:{tmp_path}", f"mixed:{tmp_path}:0.5"):
+        with pytest.raises(ValueError, match=r"^preference_source sends pairs to people") as error:
+            preference_source_from(spec, SCRIPT_LABELER, env)
+        assert reason in str(error.value)
+        assert f"it draws {DRAWN_ENVS}. Register the env id with gymnasium.register" in str(error.value)
+        assert "or label with the script: preference_source=None" in str(error.value)
+    assert not (tmp_path / "queue.json").exists()
+    env.close()
+
+
+def test_a_model_refuses_people_on_an_env_the_page_cannot_draw_before_it_trains(tmp_path):
+    """The four-room maze made from its class, not its id: the page, which makes its env from the id, cannot draw it."""
+    env = make_vec_env(lambda: TimeLimit(PointMazeFourRoomsEnv(), 20))
+    for model_class in (DIPPER, PIPER, DPOFlat):
+        with pytest.raises(ValueError, match=r"cannot draw the pairs of this env \(it has no registered id"):
+            model = any_tiny_model(model_class, env, preference_source=f"people:{tmp_path}", max_episode_steps=20)
+            model.learn(1)  # DPO-FLAT builds its labeller when learning starts, before the first step
+    assert not (tmp_path / "queue.json").exists()
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ["PointMazeFourRooms-v0", "FetchPickAndPlace-v4"])
+def test_people_label_the_envs_the_page_draws(tmp_path, env_id):
+    env = make_vec_env(env_id)
+    assert people(tmp_path, env).queue_info["env_id"] == env_id
+    env.close()
 
 
 # ---------------------------------------------------------------------------------------------------- the page beside training
@@ -627,6 +691,8 @@ def test_training_serves_the_labelling_page_and_uses_its_labels(tmp_path):
                 break
             time.sleep(0.2)
         assert pair_id is not None, "training queued no pair in 2 minutes"
+        for side in ("left", "right"):  # the page shows both pictures before it can answer
+            assert urllib.request.urlopen(f"{url}api/pair/{pair_id}/{side}.png", timeout=60).status == 200
         request = urllib.request.Request(
             url + "api/label",
             data=json.dumps({"pair_id": pair_id, "client": "test", "answer": "left"}).encode(),
@@ -661,9 +727,9 @@ def test_label_page_without_people_to_ask_is_refused_before_training(tmp_path):
 
 
 @pytest.fixture
-def served(tmp_path):
-    """Three queued pairs and the page serving them on loopback from this process: ``(port, queue directory)``."""
-    people(tmp_path).label(random_pairs(3))
+def served(tmp_path, maze_env):
+    """Three queued maze pairs and the page serving them on loopback from this process: ``(port, queue directory)``."""
+    people(tmp_path, maze_env).label(random_pairs(3))
     server = serve_in_background(tmp_path, "127.0.0.1", 0)
     yield server.server_port, tmp_path
     server.shutdown()
@@ -693,6 +759,13 @@ def wait_until_serving(server: subprocess.Popen, port: int, seconds: float = 180
             assert server.poll() is None, f"the labelling page exited with {server.returncode}"
             assert time.monotonic() < deadline, f"the labelling page did not start in {seconds:.0f} s"
             time.sleep(0.2)
+
+
+def look_at(port: int, pair_id: int) -> None:
+    """Fetch both pictures of a pair, as the page does before the pair can be answered."""
+    for side in ("left", "right"):
+        status, png = request_page(port, "GET", f"/api/pair/{pair_id}/{side}.png")
+        assert status == 200 and png.startswith(b"\x89PNG")
 
 
 def label_body(pair_id: object = 0, client: str = "x", answer: object = "left") -> bytes:
@@ -725,6 +798,7 @@ def test_the_page_answers_only_requests_that_name_this_machine(served):
     assert LabelQueue(directory).answers().pair_ids.tolist() == []
     for host in (f"localhost:{port}", f"127.0.0.1:{port}"):
         assert request_page(port, "GET", "/api/status", headers={"Host": host})[0] == 200
+    look_at(port, 0)
     assert request_page(port, "POST", "/api/label", label_body(), {"Host": f"localhost:{port}"})[0] == 200
 
 
@@ -742,6 +816,7 @@ def test_other_sites_can_neither_claim_nor_label_pairs(served):
     assert LabelQueue(directory).answers().pair_ids.tolist() == []
     status, reply = request_page(port, "POST", "/api/next", b'{"client": "tab"}', own_origin)
     assert status == 200 and json.loads(reply)["pair_id"] == 0
+    look_at(port, 0)
     assert request_page(port, "POST", "/api/label", label_body(client="tab"), own_origin)[0] == 200
 
 
@@ -759,6 +834,75 @@ def test_request_bodies_are_small_json_objects_with_integer_pair_ids(served):
     status, reply = request_page(port, "POST", "/api/label", label_body(answer={}))
     assert status == 400 and "answer (one of" in json.loads(reply)["error"]
     assert LabelQueue(directory).answers().pair_ids.tolist() == []
+
+
+def test_a_pair_is_answered_only_after_both_its_pictures_were_sent(served):
+    port, directory = served
+    status, reply = request_page(port, "POST", "/api/label", label_body(0))
+    assert status == 409 and "Pair 0 was not shown" in json.loads(reply)["error"]
+    assert request_page(port, "GET", "/api/pair/0/left.png")[0] == 200
+    assert request_page(port, "POST", "/api/label", label_body(0))[0] == 409  # one side is not the pair
+    assert request_page(port, "GET", "/api/pair/0/right.png")[0] == 200
+    assert request_page(port, "POST", "/api/label", label_body(0))[0] == 200
+    # A restarted page finds pair 1's pictures in images/, drawn before it started: they count once it sends them.
+    look_at(port, 1)
+    restarted = create_app(directory).test_client()
+    answer = {"pair_id": 1, "client": "x", "answer": "right"}
+    reply = restarted.post("/api/label", json=answer)
+    assert reply.status_code == 409 and "Pair 1 was not shown" in reply.get_json()["error"]
+    for side in ("left", "right"):
+        assert restarted.get(f"/api/pair/1/{side}.png").status_code == 200
+    assert restarted.post("/api/label", json=answer).status_code == 200
+    assert LabelQueue(directory).answers().as_dict() == {0: 1.0, 1: 0.0}
+
+
+def test_a_pair_the_page_cannot_draw_cannot_be_answered(tmp_path):
+    """A queue that records no env: both pictures are errors, and no answer, not even a skip, is recorded."""
+    people(tmp_path).label(random_pairs(1))
+    page = create_app(tmp_path).test_client()
+    for side in ("left", "right"):
+        reply = page.get(f"/api/pair/0/{side}.png")
+        assert reply.status_code == 500 and "does not say which env" in reply.get_json()["error"]
+    for answer in ANSWERS:
+        assert page.post("/api/label", json={"pair_id": 0, "client": "x", "answer": answer}).status_code == 409
+    assert LabelQueue(tmp_path).answers().pair_ids.tolist() == []
+
+
+def test_the_page_shows_why_a_picture_cannot_be_drawn_and_disables_the_answers(chromium, tmp_path):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    people(tmp_path).label(random_pairs(1))
+    server = serve_in_background(tmp_path, "127.0.0.1", 0)
+    try:
+        chromium.get(f"http://127.0.0.1:{server.server_port}/")
+        message = WebDriverWait(chromium, 60).until(
+            lambda browser: (
+                "cannot be shown" in browser.find_element(By.ID, "message").text
+                and browser.find_element(By.ID, "message").text
+            )
+        )
+        assert "so the pair cannot be answered" in message and "does not say which env" in message
+        assert not any(button.is_enabled() for button in chromium.find_elements(By.CSS_SELECTOR, "#buttons button"))
+    finally:
+        server.shutdown()
+
+
+def test_a_reused_pair_id_never_gets_an_old_picture(tmp_path, maze_env):
+    """A queue cleared by hand but for images/ gives ids from 0 again: the picture served is the new pair's."""
+    people(tmp_path, maze_env).label(random_pairs(1, seed=0))
+    running = create_app(tmp_path).test_client()
+    old = running.get("/api/pair/0/left.png").data
+    queue = LabelQueue(tmp_path)
+    shutil.rmtree(queue.pairs_dir)
+    people(tmp_path, maze_env).label(random_pairs(1, seed=1))
+    assert queue.queued_ids() == [0]
+    renderer = PairRenderer(queue.read_info())
+    new = renderer.render(queue.read_pair(0), "left")
+    renderer.close()
+    assert new != old
+    for page in (running, create_app(tmp_path).test_client()):  # the page that drew the old pair, and a restarted one
+        assert page.get("/api/pair/0/left.png").data == new
 
 
 def test_a_damaged_queue_file_reaches_the_page_as_its_message(served):

@@ -8,7 +8,9 @@ toward the pair's goal (see :mod:`sb3_dipper.labelling.render`), and buttons, wi
 ``a``), right (Right arrow or ``d``), equal (Down arrow or ``e``) and skip (``s``), and counts of labelled and waiting
 pairs. A pair is handed to one tab at a time (each tab has its own client id), and the first answer for a pair is the
 only one recorded: a second, from another tab, is refused. Answers go to ``labels.npz`` at once, so a restarted page
-goes on with the pairs nobody answered; skipped pairs are not shown again unless ``--show-skipped``.
+goes on with the pairs nobody answered; skipped pairs are not shown again unless ``--show-skipped``. An answer is
+recorded only for a pair whose two pictures this server sent: a picture it cannot draw is an error the page shows in
+place of the answer buttons, never a pair answered unseen.
 
 The page is for the person at this machine. It listens on 127.0.0.1 unless ``--host`` says otherwise; it answers only
 requests whose ``Host`` header names the address it serves on, ``localhost`` or an IP address (so a web page whose
@@ -120,6 +122,11 @@ if (!client) {
 }
 let current = null;
 let busy = false;
+// The sides of the current pair whose pictures have loaded: it can be answered once both have.
+let loaded = new Set();
+function allowAnswers(allowed) {
+  for (const button of document.querySelectorAll("#buttons button")) { button.disabled = !allowed; }
+}
 function show(counts) {
   document.getElementById("labelled").textContent = counts.labelled;
   document.getElementById("waiting").textContent = counts.waiting;
@@ -139,17 +146,40 @@ async function next() {
   }
   show(data.counts);
   current = data.pair_id;
+  loaded = new Set();
+  allowAnswers(false);
   document.getElementById("pair-id").textContent = current === null ? "-" : current;
   for (const side of ["left", "right"]) {
     const image = document.getElementById(side + "-img");
-    if (current === null) { image.removeAttribute("src"); } else { image.src = "api/pair/" + current + "/" + side + ".png"; }
+    if (current === null) { image.removeAttribute("src"); continue; }
+    const pair = current;
+    image.onload = () => {
+      if (pair !== current) { return; }
+      loaded.add(side);
+      allowAnswers(loaded.size === 2);
+    };
+    image.onerror = () => pictureFailed(image, pair, side);
+    // A new address every time: the browser asks the server, which records that it sent the picture (a restarted
+    // server has sent nothing yet), instead of showing its own copy.
+    image.src = "api/pair/" + pair + "/" + side + ".png?view=" + Date.now();
   }
   document.getElementById("message").textContent =
     current === null ? "Nothing to label now: new pairs appear as training queues them." : "";
   if (current === null) { setTimeout(next, 3000); }
 }
+// An image's error event carries no reply: ask again for the server's message (a picture it cannot draw fails again).
+async function pictureFailed(image, pair, side) {
+  if (pair !== current) { return; }
+  allowAnswers(false);
+  const response = await fetch(image.src);
+  const why = response.ok ? "it did not load; reload the page to try again." : (await reply(response)).error;
+  if (pair === current) {
+    document.getElementById("message").textContent =
+      "The " + side + " picture of pair " + pair + " cannot be shown, so the pair cannot be answered: " + why;
+  }
+}
 async function answer(choice) {
-  if (current === null || busy) { return; }
+  if (current === null || busy || loaded.size < 2) { return; }
   busy = true;
   const response = await fetch("api/label", {method: "POST", headers: {"Content-Type": "application/json"},
     body: JSON.stringify({pair_id: current, client: client, answer: choice})});
@@ -214,6 +244,9 @@ class LabellingServer:
         self.claims = Claims()
         self.lock = threading.Lock()
         self._renderer: PairRenderer | None = None
+        # The pictures this process sent (LabelQueue.image_path): a pair is answered only once both of its were. Not
+        # the pictures cached in images/: a restarted server counts a pair as shown when the page fetches it again.
+        self._sent: set[Path] = set()
 
     def waiting(self) -> list[int]:
         """The pairs to show, oldest first."""
@@ -239,28 +272,37 @@ class LabellingServer:
             return {"pair_id": pair_id, "counts": self.counts()}
 
     def answer(self, pair_id: int, client: str, answer: str) -> tuple[dict[str, Any], int]:
-        """Record ``client``'s answer for ``pair_id``: the JSON reply and its HTTP status (409: someone was first)."""
+        """Record ``client``'s answer for ``pair_id``: the JSON reply and its HTTP status (409: someone was first, or
+        this server has not sent both pictures of the pair)."""
         with self.lock:
             holder = self.claims.holder(pair_id)
             if holder is not None and holder != client:
                 return {"error": f"Pair {pair_id} is being labelled in another tab"}, 409
             if not self.queue.pair_path(pair_id).exists():
                 return {"error": f"No queued pair {pair_id}"}, 404
+            if not all(self.queue.image_path(pair_id, side) in self._sent for side in SIDES):
+                return {
+                    "error": f"Pair {pair_id} was not shown: this server has not sent both its pictures "
+                    f"(api/pair/{pair_id}/left.png and right.png), and an answer counts only for a pair the person saw"
+                }, 409
             if not self.queue.record_answer(pair_id, ANSWERS[answer], replace_skip=self.show_skipped):
                 return {"error": f"Pair {pair_id} already has an answer: the first one counts"}, 409
             self.claims.release(pair_id)
             return {"ok": True, "counts": self.counts()}, 200
 
     def image(self, pair_id: int, side: str) -> bytes:
-        """The picture of one side of a pair, rendered on first request and kept in ``images/``."""
-        cached = self.queue.images_dir / f"{pair_id:08d}-{side}.png"
+        """The picture of one side of a pair, rendered on first request and kept in ``images/``; recorded as sent."""
+        cached = self.queue.image_path(pair_id, side)
         if not cached.exists():
             with self.lock:
                 if self._renderer is None:
                     self._renderer = PairRenderer(self.queue.read_info())
                 png = self._renderer.render(self.queue.read_pair(pair_id), side)
             write_bytes_atomically(cached, png)
-        return cached.read_bytes()
+        png = cached.read_bytes()
+        with self.lock:
+            self._sent.add(cached)
+        return png
 
 
 def allowed_host(host_header: str, served_on: str) -> bool:

@@ -9,7 +9,9 @@ Layout of ``<directory>`` (every file written to a temporary name and renamed in
                           {0, 0.5, 1} or NaN for a skipped pair, ``time (N,)`` float64 (unix seconds)
     handed.npz            every pair handed to training, in order, written by training: ``pair_id``, ``label`` and
                           ``labeller`` (:data:`PERSON` or :data:`SCRIPT`), so who labelled each pair is on record
-    images/<id>.png       the page's pictures of a pair, rendered on first view
+    images/<id>-<digest>-<side>.png
+                          the page's picture of one side (left or right) of a pair, drawn on first view; the digest
+                          is of the pair file's content (:meth:`LabelQueue.image_path`)
 
 Each file has one writer, so neither side can lose the other's work, and a killed writer leaves the previous complete
 file. The page serialises its answers with a lock file (``labels.lock``), so several tabs, or several pages, never
@@ -19,6 +21,7 @@ record two answers for one pair.
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import time
@@ -37,6 +40,9 @@ from sb3_dipper.common.preferences import TrajectoryPairs, pairs_from_arrays
 PERSON = 0
 SCRIPT = 1
 LABELLER_NAMES = {PERSON: "person", SCRIPT: "script"}
+
+# Hex digits of a pair file's SHA-256 in the names of its pictures: 48 bits, so two pairs under one id never share one.
+IMAGE_DIGEST_CHARS = 12
 
 # The answers a person can give: 1 prefers the left (first) trajectory, 0 the right one, 0.5 neither, NaN skips.
 ANSWERS = {"left": 1.0, "right": 0.0, "equal": 0.5, "skip": float("nan")}
@@ -118,6 +124,17 @@ class LabelQueue:
         pair = pairs_from_arrays({**arrays, "labels": np.zeros(1, np.float32)}, f"queued pair {path}")
         pair.labels = np.array([label], dtype=np.float32)
         return pair
+
+    def image_path(self, pair_id: int, side: str) -> Path:
+        """Where the page keeps its picture of one side (``"left"`` or ``"right"``) of the queued pair ``pair_id``.
+
+        The name holds a digest of the pair file as well as its id: ids start again from 0 when someone clears
+        ``pairs/``, ``labels.npz`` and ``handed.npz`` by hand but leaves ``images/``, and a picture must never be shown
+        for another pair. Counting ``images/`` among the ids in use would cover that case only, not a pair file
+        replaced by hand; the digest covers every way a pair can change, for one read of a file of a few kilobytes.
+        """
+        digest = hashlib.sha256(self.pair_path(pair_id).read_bytes()).hexdigest()[:IMAGE_DIGEST_CHARS]
+        return self.images_dir / f"{pair_id:08d}-{digest}-{side}.png"
 
     def queued_ids(self) -> list[int]:
         """Every pair id with a file in ``pairs/``, ascending."""

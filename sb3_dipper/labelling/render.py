@@ -1,5 +1,7 @@
 """Pictures of a queued pair for the labelling page: one PNG per trajectory, both toward the pair's goal.
 
+Which of these pictures an env gets is decided by :func:`~sb3_dipper.labelling.drawable.drawing_of`; other envs get none:
+
 - Mazes (an env with a gymnasium-robotics ``maze``): a top-down view of the maze (walls from its maze map) with the
   trajectory's start, the subgoals it proposed (crosses, if the queue records a subgoal space), the states it reached
   after each option (dots joined in order) and the goal (a star inside its success radius).
@@ -25,6 +27,7 @@ from matplotlib.patches import Circle, Rectangle
 
 from sb3_dipper.common.preferences import TrajectoryPairs
 from sb3_dipper.common.subgoals import SubgoalSpace
+from sb3_dipper.labelling.drawable import KITCHEN, MAZE, drawing_of, make_render_env
 
 SIDES = ("left", "right")
 # At most this many frames per strip (the start, then evenly spaced reached states).
@@ -61,13 +64,7 @@ class PairRenderer:
     @property
     def env(self) -> gym.Env:
         if self._env is None:
-            import gymnasium_robotics
-
-            import sb3_dipper  # noqa: F401  (registers our env ids)
-
-            gym.register_envs(gymnasium_robotics)
-            self._env = gym.make(self.env_id, **{**self.env_kwargs, "render_mode": "rgb_array"})
-            self._env.reset(seed=0)
+            self._env = make_render_env(self.env_id, self.env_kwargs)
         return self._env
 
     def close(self) -> None:
@@ -78,11 +75,11 @@ class PairRenderer:
     def render(self, pair: TrajectoryPairs, side: str) -> bytes:
         """The PNG of one trajectory (``"left"``: the first, ``"right"``: the second) of a batch of one pair."""
         index = SIDES.index(side)
-        unwrapped = self.env.unwrapped
-        if hasattr(unwrapped, "maze"):
+        drawing = drawing_of(self.env.unwrapped)
+        if drawing == MAZE:
             figure = self._maze_figure(pair, index, side)
         else:
-            figure = self._frame_strip_figure(pair, index, side)
+            figure = self._frame_strip_figure(pair, index, side, drawing)
         buffer = io.BytesIO()
         figure.savefig(buffer, format="png", dpi=DPI)
         return buffer.getvalue()
@@ -151,15 +148,14 @@ class PairRenderer:
 
     # ---------------------------------------------------------------------------------------------------- robotics
 
-    def _frame_strip_figure(self, pair: TrajectoryPairs, index: int, side: str) -> Figure:
+    def _frame_strip_figure(self, pair: TrajectoryPairs, index: int, side: str, drawing: str) -> Figure:
         mask = pair.mask[index, 0]
         reached = pair.next_achieved_goals[index, 0, mask]
         goal = pair.observations["desired_goal"][index, 0, 0]
         steps = np.unique(np.linspace(0, len(reached) - 1, min(MAX_FRAMES - 1, len(reached))).round().astype(int))
         states = [("start", pair.observations["achieved_goal"][index, 0, 0])]
         states += [(f"after option {step + 1}", reached[step]) for step in steps]
-        kitchen = hasattr(self.env.unwrapped, "tasks")
-        if kitchen:
+        if drawing == KITCHEN:
             states.append(("goal", goal))
         columns = min(FRAMES_PER_ROW, len(states))
         rows = math.ceil(len(states) / columns)
@@ -168,19 +164,19 @@ class PairRenderer:
         for axis in axes[len(states) :]:
             axis.axis("off")
         for axis, (title, achieved) in zip(axes[: len(states)], states, strict=True):
-            axis.imshow(self._frame(achieved, goal))
+            axis.imshow(self._frame(achieved, goal, drawing))
             axis.set_title(title, fontsize=LABEL_SIZE, color="goldenrod" if title == "goal" else "black")
             axis.axis("off")
         figure.suptitle(f"{int(mask.sum())} options", color=COLOURS[side], fontsize=TITLE_SIZE, fontweight="bold")
         figure.tight_layout()
         return figure
 
-    def _frame(self, achieved_goal: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    def _frame(self, achieved_goal: np.ndarray, goal: np.ndarray, drawing: str) -> np.ndarray:
         """The scene with ``achieved_goal`` put back into the simulation, as an RGB image."""
         import mujoco
 
         unwrapped: Any = self.env.unwrapped
-        if hasattr(unwrapped, "tasks"):  # Franka Kitchen: the task joints
+        if drawing == KITCHEN:  # the task joints
             from gymnasium_robotics.envs.franka_kitchen.kitchen_env import OBS_ELEMENT_INDICES
 
             data, model = unwrapped.robot_env.data, unwrapped.robot_env.model

@@ -35,6 +35,7 @@ from sb3_dipper.common.preferences import (
 )
 from sb3_dipper.common.subgoals import SubgoalSpace
 from sb3_dipper.common.validation import as_bool, sparse_goal_reached_fn
+from sb3_dipper.labelling.drawable import DRAWN_ENVS, why_page_cannot_draw
 from sb3_dipper.labelling.queue import PERSON, SCRIPT, LabelQueue
 
 PreferenceSourceSpec = PreferenceSource | str | dict[str, Any] | None
@@ -173,7 +174,8 @@ class QueuedPreferenceSource(PreferenceSource):
     work). A model whose dataset is restored from its saved file (``load_replay_buffer``, as when a checkpoint
     resumes) holds the pairs handed to training before that save already, as the file records
     (:attr:`~sb3_dipper.common.preferences.PreferenceDataset.handed_ids`): those are not handed again; every other
-    label, given since the save or handed to training after it and lost with a killed run, is.
+    label, given since the save or handed to training after it and lost with a killed run, is. An algorithm refuses the
+    source on an env the labelling page cannot draw (:func:`check_page_can_draw`).
 
     :param directory: the label queue directory, shared with the page (``sb3-dipper-label --run DIRECTORY``)
     :param person_fraction: the share of new pairs sent to people; the script labels the others at once (mixed mode)
@@ -363,6 +365,24 @@ def warn_if_beyond_people(source: QueuedPreferenceSource, label_budget: int) -> 
     )
 
 
+def check_page_can_draw(source: QueuedPreferenceSource) -> None:
+    """Refuse a source whose pairs the labelling page cannot draw: people would be asked about pairs they cannot see.
+
+    :param source: the source, its ``queue_info`` set from the model's env
+    :raises ValueError: naming ``preference_source``, the env, why, and the fix
+    """
+    reason = why_page_cannot_draw(source.queue_info)
+    if reason is None:
+        return
+    env_id = source.queue_info["env_id"]
+    raise ValueError(
+        f"preference_source sends pairs to people (label queue {source.directory!r}), but the labelling page cannot "
+        f"draw the pairs of {'this env' if env_id is None else f'env {env_id!r}'} ({reason}): it draws {DRAWN_ENVS}. "
+        "Register the env id with gymnasium.register (for an env the page draws), or label with the script: "
+        "preference_source=None (the default labels), 'progress' or 'noisy:P'."
+    )
+
+
 def preference_source_from(
     spec: PreferenceSourceSpec,
     script: PreferenceSource,
@@ -378,7 +398,8 @@ def preference_source_from(
 
     :param spec: :data:`SPEC_HELP`
     :param script: the algorithm's primitive-in-the-loop labeller
-    :param env: the model's env, whose id and kwargs a label queue records for the page
+    :param env: the model's env, whose id and kwargs a label queue records for the page; an env the page cannot draw
+        is refused (:func:`check_page_can_draw`). Without it the queue records no env, and the page draws no pair.
     :param subgoal_space: the model's subgoal space (``None``: pairs of primitive actions), recorded for the page
     :param seed: the model's seed, for sources described without one
     :param label_budget: the algorithm's ``n_preference_pairs``: a source that would ask people for far more pairs
@@ -421,6 +442,8 @@ def preference_source_from(
         spec._rng = np.random.default_rng(spec.seed)
         if isinstance(spec, QueuedPreferenceSource):
             spec.queue_info = queue_info(env, subgoal_space)
+            if env is not None:
+                check_page_can_draw(spec)
             spec._pending, spec._handed, spec._not_reused, spec._delivered, spec._queue = set(), set(), set(), [], None
             if label_budget is not None:
                 warn_if_beyond_people(spec, label_budget)
