@@ -150,7 +150,9 @@ def test_bad_dipper_switches_are_refused(maze_env):
 
 
 def test_a_dense_reward_is_refused_for_preference_labels():
-    with pytest.raises(ValueError, match="sparse goal reward"):
+    with pytest.raises(
+        ValueError, match=r"sparse goal reward.*Use the env.s sparse id \(FetchReach-v4, not FetchReachDense-v4\)"
+    ):
         DIPPER("MlpPolicy", DenseGoalEnv())
 
 

@@ -250,7 +250,8 @@ def sparse_goal_reached_fn(venv: VecEnv, algorithm: str = "Preference labelling"
         raise ValueError(
             "Preference labels need a sparse goal reward (one value when the goal is reached, one otherwise), "
             f"but compute_reward gave {np.unique(rewards.probe_rewards).size} different values on 64 goal pairs: "
-            "is the reward dense?"
+            "is the reward dense? Use the env's sparse id (FetchReach-v4, not FetchReachDense-v4) or a -1/0 goal "
+            "reward in compute_reward; HIER, HAC and SAGA take dense rewards."
         )
 
     def goal_reached(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
