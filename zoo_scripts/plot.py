@@ -43,6 +43,7 @@ from matplotlib.ticker import FuncFormatter
 from stable_baselines3.common.monitor import LoadMonitorResultsError, load_results
 
 from sb3_dipper.common.files import read_npz, write_atomically, write_bytes_atomically
+from sb3_dipper.zoo.callbacks import read_progress
 
 # A curve: x (primitive steps) and y, one value per x.
 Curve = tuple[np.ndarray, np.ndarray]
@@ -284,12 +285,16 @@ def plot_success(log_folders: Sequence[Path], algos: list[str], envs: list[str],
 
 
 def load_progress(run: Path) -> pd.DataFrame | None:
-    """The SB3 CSV log of a run (``progress.csv`` anywhere in its folder), or None when it has none."""
+    """The SB3 CSV log of a run (``progress.csv`` anywhere in its folder), or None when it has none.
+
+    :raises ValueError: a ``progress.csv`` is damaged (:func:`~sb3_dipper.zoo.callbacks.read_progress`); the message
+        names it, the line and the fix
+    """
     files = sorted(run.rglob("progress.csv"))
     if not files:
         return None
     # A run resumed with `-i` writes a second log; concatenated in step order they form one curve.
-    frames = [pd.read_csv(path) for path in files if path.stat().st_size > 0]
+    frames = [read_progress(path) for path in files]
     frames = [frame for frame in frames if STEPS_KEY in frame]
     return pd.concat(frames).sort_values(STEPS_KEY) if frames else None
 

@@ -17,7 +17,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_dipper.common.deprecation import completed_groups
 from sb3_dipper.labelling.training_page import start_label_page
-from sb3_dipper.zoo.callbacks import AtomicEvalCallback
+from sb3_dipper.zoo.callbacks import AtomicEvalCallback, CSVProgressCallback
 from sb3_dipper.zoo.resume import (
     RESUME_FOLDER,
     RESUME_MODEL,
@@ -153,9 +153,10 @@ class TrialsKeepTheEntrysGroups(_ExperimentManager):
 
 class RunRecordsKeptWhole(_ExperimentManager):
     """rl-zoo3's experiment manager that never leaves a run's records cut short or rewritten: its evaluation callback
-    writes ``evaluations.npz`` to a temporary file and renames it into place (:class:`AtomicEvalCallback`), and a
-    resumed run (``resuming``) keeps the records of how it started (``<env>/config.yml``, ``args.yml``,
-    ``command.txt``), which rl-zoo3 would rewrite in place.
+    writes ``evaluations.npz`` to a temporary file and renames it into place (:class:`AtomicEvalCallback`), the
+    :class:`CSVProgressCallback` of the hyperparameters writes ``progress.csv`` in the run folder (with any
+    ``--vec-env``), and a resumed run (``resuming``) keeps the records of how it started (``<env>/config.yml``,
+    ``args.yml``, ``command.txt``), which rl-zoo3 would rewrite in place.
     """
 
     resuming = False
@@ -170,6 +171,10 @@ class RunRecordsKeptWhole(_ExperimentManager):
             super().create_callbacks()
         finally:
             rl_zoo3.exp_manager.EvalCallback = eval_callback_class  # type: ignore[misc]
+        for callback in self.callbacks:
+            if isinstance(callback, CSVProgressCallback) and callback.folder is None:
+                # Where the run's monitor files are, which the callback cannot ask of --vec-env subproc's workers.
+                callback.folder = Path(self.save_path)
 
     def _save_config(self, saved_hyperparams: dict[str, Any]) -> None:
         if not self.resuming:

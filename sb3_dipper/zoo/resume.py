@@ -30,9 +30,9 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from sb3_dipper.common.deprecation import in_new_form
 from sb3_dipper.common.files import read_npz, write_bytes_atomically
 from sb3_dipper.zoo.algorithms import ZOO_ALGORITHMS
+from sb3_dipper.zoo.callbacks import PROGRESS_FILE, STEPS_KEY, read_progress
 from sb3_dipper.zoo.run_config import ARGS_FILE, CONFIG_FILE, as_recorded, recorded_hyperparameters
 
-STEPS_KEY = "time/total_timesteps"  # SB3's step count in progress.csv
 # A paused run's checkpoint: <run folder>/resume/model.zip and the files beside it.
 RESUME_FOLDER = "resume"
 RESUME_MODEL = "model.zip"
@@ -315,20 +315,22 @@ def set_aside_part(run_folder: Path) -> None:
     reads the ``progress.csv`` and the monitor files of every part in order. A part killed after its last checkpoint
     logged steps and episodes the resumed run trains again: those ``progress.csv`` rows (by step) and monitor episodes
     (those that ended after the checkpoint was written) are dropped, so every step and episode is logged once.
+
+    :raises ValueError: ``progress.csv`` is damaged (:func:`~sb3_dipper.zoo.callbacks.read_progress`); nothing is moved
     """
-    logs = [*run_folder.glob("*.monitor.csv"), *run_folder.glob("progress.csv")]
+    logs = [*run_folder.glob("*.monitor.csv"), *run_folder.glob(PROGRESS_FILE)]
     if not logs:
         return
+    progress = run_folder / PROGRESS_FILE
+    # Read before anything moves, so that a damaged log is refused where the message says it is, the run folder as it was.
+    rows = read_progress(progress) if progress.exists() else None
     part = run_folder / f"part_{1 + len(list(run_folder.glob('part_*')))}"
     part.mkdir()
     for path in logs:
         path.rename(part / path.name)
-    progress = part / "progress.csv"
-    if progress.exists() and progress.stat().st_size > 0:
-        rows = pd.read_csv(progress)
-        if STEPS_KEY in rows:
-            kept = rows[rows[STEPS_KEY] <= checkpoint_steps(run_folder)]
-            write_bytes_atomically(progress, kept.to_csv(index=False).encode())
+    if rows is not None and STEPS_KEY in rows:
+        kept = rows[rows[STEPS_KEY] <= checkpoint_steps(run_folder)]
+        write_bytes_atomically(part / PROGRESS_FILE, kept.to_csv(index=False).encode())
     checkpoint_time = (run_folder / RESUME_FOLDER / RESUME_MODEL).stat().st_mtime
     for monitor in part.glob("*.monitor.csv"):
         drop_episodes_after(monitor, checkpoint_time)

@@ -119,6 +119,28 @@ def test_setting_a_part_aside_keeps_only_the_steps_of_the_checkpoint(tmp_path):
     assert sorted(path.name for path in tmp_path.iterdir()) == ["part_1", RESUME_FOLDER]
 
 
+@pytest.mark.parametrize(
+    "rows, problem",
+    [
+        # Killed while SB3's CSV logger rewrote the file for train/actor_loss: the rows after the cut lack its column.
+        (["100,-1.0,", "200,-2.0,0.5", "-3.0,300", "-4.0,400"], "line 4 has 2 fields, the header 3"),
+        (["100,-1.0,", "300,-3.0,0.5", "200,-2.0,0.5"], "line 4 logs time/total_timesteps 200 after 300"),
+    ],
+)
+def test_a_damaged_progress_csv_is_refused_before_the_part_is_set_aside(tmp_path, rows, problem):
+    """A progress.csv cut and spliced by a run killed while SB3 rewrote it was set aside as the part's record, its wrong
+    rows included."""
+    fake_checkpoint(tmp_path, num_timesteps=400)
+    progress = tmp_path / "progress.csv"
+    progress.write_text("\n".join(["time/total_timesteps,rollout/low_value,train/actor_loss", *rows]) + "\n")
+    (tmp_path / "0.monitor.csv").write_text('#{"t_start": 0.0}\nr,l,t\n')
+    damaged = progress.read_text()
+    with pytest.raises(ValueError, match=rf"{re.escape(str(progress))}: {problem}.* delete line 4 and the lines after"):
+        set_aside_part(tmp_path)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["0.monitor.csv", "progress.csv", RESUME_FOLDER]
+    assert progress.read_text() == damaged
+
+
 def test_the_pause_and_resume_flags_are_ours_and_checked(tmp_path):
     control, rest = split_run_control(["--algo", "sac", "--pause-after-minutes", "80", "-n", "10"])
     assert control.pause_after_minutes == 80.0 and control.resume is None and rest == ["--algo", "sac", "-n", "10"]

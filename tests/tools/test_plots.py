@@ -4,6 +4,7 @@ Real zoo runs, written by ``benchmark.py learning``, are plotted in tests/tools/
 """
 
 import json
+import re
 import sys
 
 import matplotlib
@@ -95,6 +96,24 @@ def test_a_damaged_evaluation_record_is_an_error_naming_it(logs):
         plot.evaluation_curve(run)
     with pytest.raises(ValueError, match=r"restore it from a copy of the run folder, or delete it"):
         plot.plot_success([logs], ["dipper"], ENVS)
+
+
+@pytest.mark.parametrize(
+    "damage, problem",
+    [
+        (lambda lines: [*lines[:3], lines[3].rsplit(",", 1)[0], *lines[4:]], "line 4 has 3 fields, the header 4"),
+        (lambda lines: [*lines[:2], lines[3], lines[2], *lines[4:]], "line 4 logs time/total_timesteps 2000 after 3000"),
+    ],
+)
+def test_a_damaged_progress_csv_is_an_error_naming_it(logs, damage, problem):
+    """A progress.csv cut and spliced by a run killed while SB3 rewrote it in place was plotted as it was."""
+    progress = logs / "dipper" / f"{ENVS[0]}_1" / "progress.csv"
+    progress.write_text("\n".join(damage(progress.read_text().splitlines())) + "\n")
+    message = rf"{re.escape(str(progress))}: {problem}.* delete line 4 and the lines after it"
+    with pytest.raises(ValueError, match=message):
+        plot.load_progress(progress.parent)
+    with pytest.raises(ValueError, match=message):
+        plot.plot_hierarchical_metrics([logs], ["dipper"], ENVS)
 
 
 def test_hierarchical_metrics_skip_algorithms_without_them(logs):

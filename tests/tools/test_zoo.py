@@ -1,5 +1,6 @@
 """The RL-Zoo runner: our YAML files, ``sb3-dipper-zoo train`` / ``enjoy`` in subprocesses, and clear errors."""
 
+import csv
 import inspect
 import os
 import subprocess
@@ -9,11 +10,15 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import optuna
+import pandas as pd
 import pytest
 import yaml
 from optuna.trial import TrialState
 from stable_baselines3 import SAC
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.logger import CSVOutputFormat
 from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import SubprocVecEnv
 
 from sb3_dipper import HIER
 from sb3_dipper.common.files import npz_path
@@ -30,6 +35,7 @@ from sb3_dipper.zoo import (
     run_control_parser,
     zoo_argv,
 )
+from sb3_dipper.zoo.callbacks import STEPS_KEY, AtomicCSVOutputFormat, read_progress
 from tests.conftest import short_maze, tiny_model
 from zoo_scripts.configs import ALGORITHMS, ZOO_KEYS, load_entry
 
@@ -199,6 +205,103 @@ def test_progress_csv_is_never_shared_between_runs(tmp_path):
         tiny_model(HIER, env).learn(10, callback=CSVProgressCallback())
     assert (tmp_path / "progress.csv").read_text() == "another run's rows\n"
     env.close()
+
+
+def test_progress_csv_has_the_columns_and_cells_of_sb3s_csv_writer(tmp_path):
+    """plot.py, --resume and the committed CSVs read progress.csv as SB3's CSVOutputFormat wrote it: the same columns
+    and cells (strings quoted, a key a record lacks left empty), though new keys no longer rewrite the file in place."""
+    records = [
+        {STEPS_KEY: 100, "rollout/ep_rew_mean": -17.571428571428573, "time/fps": 51},
+        {STEPS_KEY: 200, "rollout/ep_rew_mean": -1e-7, "train/actor_loss": 0.5, "train/n_updates": 3, "time/fps": 50},
+        {STEPS_KEY: 200, "eval/mean_reward": -3.0, "eval/note": 'say "hi", twice', "eval/frames": "x" * 3},
+        {STEPS_KEY: 300, "rollout/ep_rew_mean": float("nan"), "train/n_updates": 7, "train/not_for_csv": 1.0},
+        {STEPS_KEY: 400, "eval/mean_reward": None, "rollout/low_value": np.float32(-0.25)},
+    ]
+    excluded = {"train/not_for_csv": ("csv",), "time/fps": ("tensorboard",)}
+    sb3_writer = CSVOutputFormat(str(tmp_path / "sb3.csv"))
+    writer = AtomicCSVOutputFormat(tmp_path / "progress.csv")
+    for record in records:
+        sb3_writer.write(record, excluded)
+        writer.write(record, excluded)
+    sb3_writer.close()
+
+    def cells(name: str) -> list[dict[str, str]]:
+        with open(tmp_path / name, newline="") as file:
+            return list(csv.DictReader(file))
+
+    assert cells("progress.csv") == cells("sb3.csv") and len(cells("sb3.csv")) == len(records)
+    assert '"say ""hi"", twice"' in (tmp_path / "progress.csv").read_text()
+    sb3_table = pd.read_csv(tmp_path / "sb3.csv")
+    pd.testing.assert_frame_equal(read_progress(tmp_path / "progress.csv")[sb3_table.columns], sb3_table)
+
+
+def test_a_run_killed_while_progress_csv_gets_new_columns_leaves_the_file_whole(tmp_path, monkeypatch):
+    """SB3's CSV writer rewrote progress.csv in place whenever a key appeared: a run killed meanwhile left rows cut and
+    spliced (a mean reward of 7e9, a row lost), which --resume and plot.py took as they were."""
+    env = short_maze(monitor_dir=str(tmp_path))
+    # The evaluation's record comes first, at step 50; the training record at step 80 brings new keys.
+    evaluation = EvalCallback(short_maze(), eval_freq=50, n_eval_episodes=1)
+    progress = tmp_path / "progress.csv"
+    fsync = os.fsync
+    files_before_a_rewrite = []
+
+    def killed_at_the_second_rewrite(descriptor):
+        files_before_a_rewrite.append(progress.read_text())
+        if len(files_before_a_rewrite) == 2:
+            raise Killed
+        fsync(descriptor)
+
+    monkeypatch.setattr(os, "fsync", killed_at_the_second_rewrite)
+    with pytest.raises(Killed):
+        tiny_model(HIER, env).learn(100, callback=[CSVProgressCallback(), evaluation])
+    monkeypatch.undo()
+    assert progress.read_text() == files_before_a_rewrite[-1]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["0.monitor.csv", "progress.csv"]  # no temporary file
+    logged = read_progress(progress)
+    assert logged[STEPS_KEY].tolist() == [50] and "eval/mean_reward" in logged
+    env.close()
+    evaluation.eval_env.close()
+
+
+def test_training_in_chunks_appends_to_the_models_own_progress_csv(tmp_path):
+    """A second learn(..., reset_num_timesteps=False) of the same model was refused as another run's."""
+    env = short_maze(monitor_dir=str(tmp_path))
+    model = tiny_model(HIER, env)
+    model.learn(100, callback=CSVProgressCallback())
+    first = read_progress(tmp_path / "progress.csv")[STEPS_KEY].tolist()
+    model.learn(100, callback=CSVProgressCallback(), reset_num_timesteps=False)
+    both = read_progress(tmp_path / "progress.csv")[STEPS_KEY].tolist()
+    assert first and both[: len(first)] == first and len(both) > len(first) and min(both[len(first) :]) > 100
+
+    with pytest.raises(FileExistsError, match=r"restarts the step count \(reset_num_timesteps=True\)"):
+        model.learn(100, callback=CSVProgressCallback())
+    with pytest.raises(FileExistsError, match="another run logs to the same folder"):
+        tiny_model(HIER, env).learn(100, callback=CSVProgressCallback(), reset_num_timesteps=False)
+    assert read_progress(tmp_path / "progress.csv")[STEPS_KEY].tolist() == both
+    env.close()
+
+
+def test_a_run_with_subprocess_envs_writes_progress_csv_to_the_folder_given(tmp_path):
+    """Under SubprocVecEnv (rl-zoo3's --vec-env subproc) the callback asked a worker for its Monitor's open file, which
+    cannot be pickled: training failed at its start with a bare EOFError."""
+    env = short_maze(n_envs=2, monitor_dir=str(tmp_path), vec_env_cls=SubprocVecEnv)
+    model = tiny_model(HIER, env)
+    with pytest.raises(ValueError, match=r"a SubprocVecEnv .* CSVProgressCallback\(folder=\.\.\.\)"):
+        model.learn(200, callback=CSVProgressCallback())
+    model.learn(200, callback=CSVProgressCallback(folder=tmp_path))
+    assert read_progress(tmp_path / "progress.csv")[STEPS_KEY].max() > 0
+    env.close()
+
+
+def test_train_with_subprocess_envs_logs_progress_csv(tmp_path):
+    """Every YAML of ours names CSVProgressCallback: `--vec-env subproc` failed at the start with a bare EOFError."""
+    params = [*(param for param in TINY_PARAMS["hier"] if not param.startswith("n_envs:")), "n_envs:2"]
+    trained = zoo(
+        "train", "--algo", "hier", "--env", f"sb3_dipper:{ENV_ID}", "--vec-env", "subproc", "-n", "300", "--seed", "0",
+        "-f", "logs", "--eval-freq", "-1", "--env-kwargs", "max_episode_steps:50", "-params", *params, cwd=tmp_path,
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    assert read_progress(tmp_path / "logs" / "hier" / f"{ENV_ID}_1" / "progress.csv")[STEPS_KEY].max() > 0
 
 
 class Killed(Exception):
