@@ -43,7 +43,7 @@ from matplotlib.ticker import FuncFormatter
 from stable_baselines3.common.monitor import LoadMonitorResultsError, load_results
 
 from sb3_dipper.common.files import read_npz, write_atomically, write_bytes_atomically
-from sb3_dipper.zoo.callbacks import read_progress
+from sb3_dipper.zoo.callbacks import PROGRESS_FILE, STEPS_KEY, read_progress
 
 # A curve: x (primitive steps) and y, one value per x.
 Curve = tuple[np.ndarray, np.ndarray]
@@ -64,7 +64,6 @@ LABELS = {
     "tqc": "TQC+HER",
 }
 HIERARCHICAL_METRICS = {"rollout/subgoal_distance": "distance to the subgoal", "rollout/low_value": "lower value"}
-STEPS_KEY = "time/total_timesteps"
 
 
 def label(name: str) -> str:
@@ -290,7 +289,7 @@ def load_progress(run: Path) -> pd.DataFrame | None:
     :raises ValueError: a ``progress.csv`` is damaged (:func:`~sb3_dipper.zoo.callbacks.read_progress`); the message
         names it, the line and the fix
     """
-    files = sorted(run.rglob("progress.csv"))
+    files = sorted(run.rglob(PROGRESS_FILE))
     if not files:
         return None
     # A run resumed with `-i` writes a second log; concatenated in step order they form one curve.
