@@ -5,6 +5,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium import spaces
+from stable_baselines3.td3.policies import MultiInputPolicy as TD3MultiInputPolicy
 
 from sb3_dipper import DIPPER, HIER, SubgoalSpace
 from tests.conftest import ALL_ALGORITHMS, OPTION_ALGORITHMS, any_tiny_model, short_maze, tiny_model
@@ -88,12 +89,23 @@ def test_an_unknown_policy_name_is_refused(model_class, maze_env):
 
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
+def test_another_algorithms_policy_class_is_refused_naming_the_alias(model_class, maze_env):
+    refusal = rf"^{model_class.__name__}'s policy must be one of \[.*'MultiInputPolicy'.*got <class.*, env\)"
+    with pytest.raises(TypeError, match=refusal):
+        model_class(TD3MultiInputPolicy, maze_env)
+
+
+@pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_a_mismatched_env_at_load_is_refused(model_class, tmp_path, maze_env):
-    any_tiny_model(model_class, maze_env).save(tmp_path / "model")
-    # The same episode length as the maze, so the spaces check (not the time-limit check) speaks.
-    other = gym.make("FetchReach-v4", max_episode_steps=20)
-    with pytest.raises(ValueError, match="spaces do not match"):
-        model_class.load(tmp_path / "model", env=other)
+    model = any_tiny_model(model_class, maze_env)
+    model.save(tmp_path / "model")
+    # Spaces are compared before the time limit: an env of another task with another episode length is told that its
+    # spaces differ, not to change its episode length.
+    for other in (gym.make("FetchReach-v4", max_episode_steps=20), gym.make("FetchReach-v4", max_episode_steps=30)):
+        with pytest.raises(ValueError, match=r"^Observation spaces do not match"):
+            model_class.load(tmp_path / "model", env=other)
+        with pytest.raises(ValueError, match=r"^Observation spaces do not match"):
+            model.set_env(other)
 
 
 # DAC and DPOFlat predict with SB3's policies, which fail on a flat observation as SB3's SAC does (an IndexError).

@@ -297,7 +297,7 @@ DICT_SETTINGS = {
     "low_level_kwargs": {"target_update_interval": 1},
     "reward_model_kwargs": {"net_arch": [16]},
     "discriminator_kwargs": {"net_arch": [16]},
-    "demo_kwargs": {"bc_coef": 0.01},
+    "demo_kwargs": {"demo_path": "auto", "bc_coef": 0.01},
     "switch_kwargs": {"nll_coef": 1.0},
 }
 
@@ -351,9 +351,21 @@ def test_a_demo_setting_is_checked_given_by_its_deprecated_name_in_a_file_and_to
         HIER.load(saved, demo_kwargs={"rl_coef": -1.0})
 
 
+@pytest.mark.parametrize("model_class", [*HIERARCHICAL_ALGORITHMS, SACDemo])
+def test_a_demo_setting_without_demonstrations_is_refused_naming_the_missing_demo_path(env, model_class):
+    with pytest.raises(
+        ValueError,
+        match=r"demo_kwargs\['bc_coef'\]=0.02, demo_kwargs\['q_filter'\]=False without demonstrations changes nothing: "
+        r"give demo_kwargs\['demo_path'\] too .*, or leave bc_coef, q_filter out",
+    ):
+        any_tiny_model(model_class, env, demo_kwargs=dict(bc_coef=0.02, q_filter=False))
+    # The defaults, given or not, are no demonstration setting of the user's.
+    assert any_tiny_model(model_class, env, demo_kwargs=dict(bc_coef=0.0078)).demo_kwargs["demo_path"] is None
+
+
 def test_demo_settings_from_the_zoo_are_converted_and_a_misspelt_key_is_named(env):
-    model = tiny_model(HIER, env, demo_kwargs={"n_demos": "2.0", "bc_coef": "1e-2"})
-    assert model.demo_kwargs["n_demos"] == 2 and type(model.demo_kwargs["n_demos"]) is int
+    model = tiny_model(HIER, env, demo_kwargs={"demo_path": "auto", "n_demos": "1.0", "bc_coef": "1e-2"})
+    assert model.demo_kwargs["n_demos"] == 1 and type(model.demo_kwargs["n_demos"]) is int
     assert model.demo_kwargs["bc_coef"] == 0.01 and model.lower.bc_coef == 0.01
     with pytest.raises(TypeError, match=r"^demo_kwargs got an unexpected key 'bc_coeff'; did you mean 'bc_coef'\?$"):
         tiny_model(HIER, env, demo_kwargs={"bc_coeff": 1.0})

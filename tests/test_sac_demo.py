@@ -140,10 +140,10 @@ def test_loading_reads_the_demonstrations_again_only_with_an_env(tmp_path):
 
 
 def test_demo_kwargs_are_the_hierarchies_but_normalize_from_demos_checked_as_theirs(maze_demos):
-    model = SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=dict(n_demos="1.0", bc_coef="1e-2"), **TINY)
-    assert (
-        model.demo_kwargs == {**SAC_DEMO_DEFAULTS, "n_demos": 1, "bc_coef": 0.01} and type(model.demo_kwargs["n_demos"]) is int
-    )
+    demo_kwargs = dict(demo_path=str(maze_demos), n_demos="1.0", bc_coef="1e-2")
+    model = SACDemo("MultiInputPolicy", short_maze(), demo_kwargs=demo_kwargs, **TINY)
+    assert model.demo_kwargs == {**SAC_DEMO_DEFAULTS, "demo_path": str(maze_demos), "n_demos": 1, "bc_coef": 0.01}
+    assert type(model.demo_kwargs["n_demos"]) is int
     # The update reads DemoSAC's attributes, which read and write demo_kwargs: one place for each setting.
     assert model.bc_coef == 0.01
     model.q_filter = False

@@ -32,7 +32,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import safe_mean
+from stable_baselines3.common.utils import check_for_correct_spaces, safe_mean
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize, unwrap_vec_normalize
 from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
 
@@ -750,6 +750,7 @@ class HierarchicalAlgorithm(CheckedLoading):
         if self.demo_kwargs["normalize_from_demos"]:
             self._normalizable(unwrap_vec_normalize(env) if isinstance(env, VecEnv) else None)
         env = self._wrap_env(env, self.verbose)
+        check_for_correct_spaces(env, self.observation_space, self.action_space)
         self._check_env_subgoal_space(env)
         super().set_env(env, force_reset)
         if self.option_env is None:

@@ -79,13 +79,17 @@ def checked_demo_kwargs(demo_kwargs: Mapping[str, Any], keys: Collection[str] = 
     except InvalidSetting as error:
         # The parameter is demo_kwargs: load names it in its advice (load(path, demo_kwargs=...)).
         raise InvalidSetting("demo_kwargs", str(error)) from None
-    if settings.get("normalize_from_demos") and settings["demo_path"] is None:
-        raise InvalidSetting(
-            "demo_kwargs",
-            "demo_kwargs['normalize_from_demos']=True scales observations by the demonstrations' states: give "
-            "demo_kwargs['demo_path'] too (an npz file, a Minari directory, 'auto' or 'auto:dart<N>') or leave "
-            "normalize_from_demos out",
-        )
+    if settings["demo_path"] is None:
+        # Without demonstrations every other setting changes nothing: a bc_coef given with the demo_path forgotten would
+        # train without cloning, silently.
+        unused = [key for key in keys if key != "demo_path" and settings[key] != DEFAULT_DEMO_KWARGS[key]]
+        if unused:
+            given = ", ".join(f"demo_kwargs[{key!r}]={settings[key]!r}" for key in unused)
+            raise InvalidSetting(
+                "demo_kwargs",
+                f"{given} without demonstrations changes nothing: give demo_kwargs['demo_path'] too (an npz file, a "
+                f"Minari directory, 'auto' or 'auto:dart<N>'), or leave {', '.join(unused)} out",
+            )
     return settings
 
 

@@ -36,12 +36,14 @@ import zipfile
 from collections.abc import Callable, Mapping
 from typing import Any, ClassVar, TypeVar
 
+import gymnasium as gym
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
-from stable_baselines3.common.save_util import open_path, recursive_getattr, recursive_setattr
+from stable_baselines3.common.save_util import json_to_data, open_path, recursive_getattr, recursive_setattr
 from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.utils import check_for_correct_spaces
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_dipper.common.deprecation import (
@@ -102,6 +104,17 @@ def saved_data_fields(path: str | pathlib.Path | io.BufferedIOBase) -> dict[str,
             path.seek(start)
     with open_path(path, "r", suffix="zip") as file:
         return _read_data_fields(file)
+
+
+def _saved_spaces(fields: dict[str, Any], custom_objects: dict[str, Any] | None) -> tuple[Any, Any] | None:
+    """The saved observation and action spaces, decoded as SB3's ``load`` decodes them (``None`` if either is missing
+    or cannot be decoded: SB3's ``load`` then reports the problem itself)."""
+    if "observation_space" not in fields or "action_space" not in fields:
+        return None
+    encoded = {name: fields[name] for name in ("observation_space", "action_space")}
+    decoded = json_to_data(json.dumps(encoded), custom_objects=custom_objects)
+    spaces = decoded.get("observation_space"), decoded.get("action_space")
+    return spaces if all(isinstance(space, gym.spaces.Space) for space in spaces) else None
 
 
 def _read_data_fields(file: io.BufferedIOBase) -> dict[str, Any]:
@@ -384,6 +397,11 @@ class CheckedLoading(BaseAlgorithm):
                 check_entropy_coefficient(name, fields[name], kwargs[name], f"{cls.__name__}.load({path}, ...)")
         if env is not None:
             env = cls._wrap_env(env, int(fields.get("verbose", 0)))
+            # SB3 compares the spaces inside its load, after the time limit is checked here: an env of another task
+            # would be told to change its episode length first, and then that its spaces differ.
+            saved_spaces = _saved_spaces(fields, custom_objects)
+            if saved_spaces is not None:
+                check_for_correct_spaces(env, *saved_spaces)
             check_time_limit(
                 env,
                 kwargs.get("max_episode_steps", fields.get("max_episode_steps")),
@@ -415,6 +433,8 @@ class CheckedLoading(BaseAlgorithm):
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; refuses an env whose time limit is not the model's episode length."""
         env = self._wrap_env(env, self.verbose)
+        # Spaces first, as in load: an env of another task needs no advice on its episode length.
+        check_for_correct_spaces(env, self.observation_space, self.action_space)
         check_time_limit(
             env,
             self.max_episode_steps,

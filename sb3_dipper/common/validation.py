@@ -478,6 +478,15 @@ def policy_class_and_goal_env(model: Any, policy: Any, env: Any, verbose: int) -
         if policy not in model.policy_aliases:
             raise ValueError(f"{algorithm} has no policy {policy!r}; choose one of {sorted(model.policy_aliases)}")
         policy = model.policy_aliases[policy]
+    elif not (isinstance(policy, type) and issubclass(policy, tuple(model.policy_aliases.values()))):
+        # Another algorithm's policy class (SB3's sac.MultiInputPolicy) would fail deep inside the model's set-up.
+        aliases = sorted(model.policy_aliases)
+        classes = sorted({cls.__name__ for cls in model.policy_aliases.values()})
+        example = "MultiInputPolicy" if "MultiInputPolicy" in aliases else aliases[0]
+        raise TypeError(
+            f"{algorithm}'s policy must be one of {aliases} or a subclass of {' or '.join(classes)}, got {policy!r}: "
+            f"pass the alias string, e.g. {algorithm}({example!r}, env)"
+        )
     if env is not None:
         env = maybe_make_env(env, verbose)
         check_goal_observation_space(env.observation_space, algorithm)

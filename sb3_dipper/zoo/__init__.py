@@ -338,6 +338,10 @@ def split_run_control(argv: list[str]) -> tuple[RunControl, list[str]]:
 
 def main() -> None:
     """``sb3-dipper-zoo {train,enjoy,record_video,plot_train,plot_from_file,all_plots} ...``: rl-zoo3's CLI, our algorithms."""
+    if len(sys.argv) < 2:
+        # Alone, the command lists its commands (with the usage-error status: nothing was run).
+        command_parser().print_help()
+        sys.exit(2)
     command = command_parser().parse_args(sys.argv[1:2]).command
     if command == "train" and asks_for_help(sys.argv[2:]):
         # Before our flags are checked: a help request is answered whatever else the command line holds.
