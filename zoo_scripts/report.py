@@ -9,10 +9,9 @@ exactly one configuration: the run label of ``docs/benchmarks/paper-tasks-cpu.cs
 ``<algo>-<variant>``, see :data:`COLUMNS`) or, for the evaluations of a final model with part of it switched off
 (``zoo_scripts/research/planner_share.py``), a case of a planner-share CSV. The columns say who acts:
 
-* the ``dipper`` profile as trained (its subgoal planner acts at evaluation only where the profile's ``planner_kwargs``
-  leave ``in_predict`` on: there it proposes the subgoal wherever its graph knows a path to the goal and leaves every
-  other subgoal to the preference-trained policy);
-* its final models evaluated with the planner off (the preference-trained policy's own success), with the higher policy
+* the ``dipper`` profile as trained, at its last evaluation in training (no paper-task profile plans at evaluation:
+  their ``planner_kwargs`` leave ``in_predict`` off, so the preference-trained policy proposes every subgoal);
+* its final models evaluated again with the planner off (the same policy, other episodes), with the higher policy
   reset to untrained weights, and with the goal handed to the lower level as every subgoal (what the hierarchy adds is
   measured against these controls);
 * the lower level driven by the planner, the goal wherever its graph knew no path: every earlier ``dipper`` run with
