@@ -33,7 +33,9 @@ def test_learn_then_predict_a_primitive_action(model_class, policy, maze_env):
 
 @pytest.mark.parametrize("model_class", ALL_ALGORITHMS)
 def test_two_envs_in_subprocesses(model_class):
-    env = short_maze(n_envs=2, vec_env_cls=SubprocVecEnv)
+    # Forked workers: what differs per algorithm is its side of the pipes. SB3's default start method (forkserver, whose
+    # workers import everything anew, seconds each) runs in the zoo's `--vec-env subproc` test.
+    env = short_maze(n_envs=2, vec_env_cls=SubprocVecEnv, vec_env_kwargs=dict(start_method="fork"))
     try:
         model = any_tiny_model(model_class, env)
         model.learn(160, progress_bar=True)
