@@ -1,5 +1,8 @@
 """The four-room PointMaze: a standard SB3 goal env with a long-horizon task."""
 
+import os
+import tempfile
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -72,6 +75,16 @@ def test_start_and_goal_lie_in_opposite_rooms():
     other = PointMazeFourRoomsEnv(start_room="top_left", goal_room="bottom_right")
     obs, _ = other.reset(seed=0)
     assert cell_of(obs["achieved_goal"]) in ROOMS["top_left"] and cell_of(obs["desired_goal"]) in ROOMS["bottom_right"]
+
+
+def test_making_the_env_leaves_no_model_file_behind(tmp_path, monkeypatch):
+    """gymnasium-robotics writes the maze's model into the temp folder and leaves it there; the env removes it."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    env = PointMazeFourRoomsEnv()
+    assert os.path.dirname(env.tmp_xml_file_path) == str(tmp_path) and list(tmp_path.iterdir()) == []
+    env.reset(seed=0)
+    env.step(env.action_space.sample())
+    env.close()
 
 
 def test_unknown_room_is_refused():

@@ -17,6 +17,8 @@ Differences from the upstream env, all chosen so the task is a standard SB3 goal
 
 from __future__ import annotations
 
+import contextlib
+import os
 from collections import deque
 from typing import Any
 
@@ -85,6 +87,10 @@ class PointMazeFourRoomsEnv(PointMazeEnv):
             reset_target=False,
             **kwargs,
         )
+        # Upstream writes the maze's MuJoCo model to a file in the temp folder, reads it once, and never removes it: one
+        # file per env made (thousands in a test run).
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(self.tmp_xml_file_path)
         # Upstream hard-codes one MuJoCo step per env step; the velocity clip still applies before every env step.
         self.point_env.frame_skip = int(frame_skip)
         self.subgoal_space = SubgoalSpace(
