@@ -78,10 +78,12 @@ def profile_demonstrations(task: str) -> str:
 
 @dataclass(frozen=True)
 class Learning:
-    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV."""
+    """Final evaluations of the runs labelled ``label`` in a learning-curve CSV; where there are none yet, those of
+    ``earlier``, the same method's runs at its earlier profile (the cell is then marked, see :data:`EARLIER_PROFILE`)."""
 
     label: str
     csv: str = "paper-tasks-cpu.csv"
+    earlier: str | None = None
 
 
 @dataclass(frozen=True)
@@ -131,9 +133,44 @@ PLANNER_GOAL: dict[str, Source] = {
 }
 
 
-def everywhere(label: str, tasks: dict[str, Learning] | None = None) -> dict[str, Source]:
-    """``label`` on every task, or per task where ``tasks`` names other runs."""
-    return {task: (tasks or {}).get(task, Learning(label)) for task in TASKS}
+# The baselines' CPU profiles changed: their higher SAC (PIPER, HIER, HAC, SAGA) had SB3's entropy coefficient tuned
+# from 1.0 and tau 0.005 where the authors' code has alpha 0.05 and polyak 0.8 per 10 batches (RAPS: tau only), and
+# on the fixed pick-and-place every method but DIPPER's profile and SAC+HER+BC cloned at 0.0078 where those two clone
+# at 0.02 (the authors' balance at this batch). The rows of the earlier profiles carry these suffixes; a cell shows
+# them, marked, until the method is rerun at its profile.
+EARLIER_PROFILE_MARK = "†"
+EARLIER_PROFILE_LEGEND = (
+    f"{EARLIER_PROFILE_MARK}: the method's earlier CPU profile, not yet rerun at its current one: its higher SAC at "
+    "SB3's defaults (entropy coefficient tuned from 1.0, tau 0.005) where the authors' code has alpha 0.05 and polyak "
+    "0.8 per 10 batches (RAPS: tau only), and on the fixed pick-and-place a cloning weight of 0.0078 where the other "
+    "methods clone at 0.02 (the authors' balance at this batch)."
+)
+HIGHER_SAC_METHODS = ("piper", "hier", "hac", "saga")
+
+
+def earlier_label(label: str, task: str) -> str | None:
+    """The label the rows of ``label``'s earlier profile carry on ``task`` (``None``: its profile there is unchanged).
+
+    ``<algo>[-<variant>]``: the higher-SAC methods insert ``highauto`` (RAPS ``hightau0.005``) after the algorithm,
+    and on the fixed pick-and-place every method that clones its demonstration (but DIPPER's profile) ``bc0.0078``.
+    """
+    algo, _, variant = label.partition("-")
+    suffixes = []
+    if algo in HIGHER_SAC_METHODS:
+        suffixes.append("highauto")
+    elif algo == "raps":
+        suffixes.append("hightau0.005")
+    if task == PNP_FIXED and algo in (*HIGHER_SAC_METHODS, "dipper_paper", "dipper_nov"):
+        suffixes.append("bc0.0078")
+    if not suffixes:
+        return None
+    return "-".join([algo, *suffixes, *([variant] if variant else [])])
+
+
+def everywhere(label: str, earlier: dict[str, str] | None = None) -> dict[str, Source]:
+    """``label`` on every task, each with its earlier profile's runs (:func:`earlier_label`, or per task where
+    ``earlier`` names them)."""
+    return {task: Learning(label, earlier=(earlier or {}).get(task, earlier_label(label, task))) for task in TASKS}
 
 
 # (heading, the source of each task's cell)
@@ -154,10 +191,10 @@ HIERARCHICAL_COLUMNS: list[tuple[str, dict[str, Source]]] = [
         "HIER",
         everywhere(
             "hier",
-            {
-                PNP: Learning("hier-dart20-noqf-bc1-demo0.5"),
-                PUSH: Learning("hier-dart200-noqf-bc1-demo0.5"),
-                KITCHEN: Learning("hier-dart20-noqf-bc1-demonorm-demo0.5"),
+            {  # the earlier profile's runs there were variants: the DART episodes the profile now clones
+                PNP: "hier-highauto-dart20-noqf-bc1-demo0.5",
+                PUSH: "hier-highauto-dart200-noqf-bc1-demo0.5",
+                KITCHEN: "hier-highauto-dart20-noqf-bc1-demonorm-demo0.5",
             },
         ),
     ),
@@ -174,32 +211,33 @@ FLAT_COLUMNS: list[tuple[str, dict[str, Source]]] = [
 ]
 # Whose success, for the hierarchical baselines: their final models as trained, with the higher policy untrained and
 # with the goal as every subgoal (zoo_scripts/research/planner_share.py), per task and method: (csv, the runs' path part).
+# A method marked with EARLIER_PROFILE_MARK is its earlier profile's runs.
 BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
-    (PNP_FIXED, "HAC", "planner-share-baselines.csv", "/hac/"),
-    (PNP_FIXED, "SAGA", "planner-share-baselines.csv", "/saga/"),
-    (PNP_FIXED, "PIPER", "planner-share-baselines.csv", "/piper/"),
-    (PNP_FIXED, "DIPPER-No-V", "planner-share-baselines.csv", "/dipper_nov/"),
+    (PNP_FIXED, "HAC†", "planner-share-baselines.csv", "/hac/"),
+    (PNP_FIXED, "SAGA†", "planner-share-baselines.csv", "/saga/"),
+    (PNP_FIXED, "PIPER†", "planner-share-baselines.csv", "/piper/"),
+    (PNP_FIXED, "DIPPER-No-V†", "planner-share-baselines.csv", "/dipper_nov/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
-    (PUSH_FIXED, "HAC", "planner-share-push-fixed-baselines.csv", "/hac/"),
-    (PUSH_FIXED, "SAGA", "planner-share-push-fixed-baselines.csv", "/saga/"),
-    (PNP, "HAC", "planner-share-pnp-random-baselines.csv", "/hac/"),
-    (PNP, "PIPER", "planner-share-pnp-random-baselines.csv", "/piper/"),
+    (PUSH_FIXED, "HAC†", "planner-share-push-fixed-baselines.csv", "/hac/"),
+    (PUSH_FIXED, "SAGA†", "planner-share-push-fixed-baselines.csv", "/saga/"),
+    (PNP, "HAC†", "planner-share-pnp-random-baselines.csv", "/hac/"),
+    (PNP, "PIPER†", "planner-share-pnp-random-baselines.csv", "/piper/"),
     (PNP, "DIPPER-No-V", "planner-share-pnp-random-baselines.csv", "/dipper_nov/"),
-    (PNP, "SAGA", "planner-share-pnp-random-baselines.csv", "/saga/"),
+    (PNP, "SAGA†", "planner-share-pnp-random-baselines.csv", "/saga/"),
     (PNP, "paper's DIPPER", "planner-share-pnp-random-baselines.csv", "/dipper_paper/"),
-    (PUSH, "HIER", "planner-share-push-random-dart200-hier.csv", "/hier/"),
+    (PUSH, "HIER†", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (PUSH, "paper's DIPPER", "planner-share-push-random-baselines.csv", "/dipper_paper/"),
-    (KITCHEN, "HIER", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
+    (KITCHEN, "HIER†", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
     (KITCHEN, "paper's DIPPER", "planner-share-kitchen-baselines.csv", "/dipper_paper/"),
-    (MAZE_FIXED, "HAC", "planner-share-maze-baselines.csv", "/hac/"),
-    (MAZE_FIXED, "SAGA", "planner-share-maze-baselines.csv", "/saga/"),
-    (MAZE_FIXED, "PIPER", "planner-share-maze-baselines.csv", "/piper/"),
+    (MAZE_FIXED, "HAC†", "planner-share-maze-baselines.csv", "/hac/"),
+    (MAZE_FIXED, "SAGA†", "planner-share-maze-baselines.csv", "/saga/"),
+    (MAZE_FIXED, "PIPER†", "planner-share-maze-baselines.csv", "/piper/"),
     (MAZE_FIXED, "DIPPER-No-V", "planner-share-maze-baselines.csv", "/dipper_nov/"),
-    (MAZE_FIXED, "HIER", "planner-share-maze-baselines.csv", "/hier/"),
-    (MAZE, "HAC", "planner-share-rmaze-baselines.csv", "/hac/"),
-    (MAZE, "SAGA", "planner-share-rmaze-baselines.csv", "/saga/"),
-    (MAZE, "HIER", "planner-share-rmaze-baselines.csv", "/hier/"),
-    (MAZE, "PIPER", "planner-share-rmaze-baselines.csv", "/piper/"),
+    (MAZE_FIXED, "HIER†", "planner-share-maze-baselines.csv", "/hier/"),
+    (MAZE, "HAC†", "planner-share-rmaze-baselines.csv", "/hac/"),
+    (MAZE, "SAGA†", "planner-share-rmaze-baselines.csv", "/saga/"),
+    (MAZE, "HIER†", "planner-share-rmaze-baselines.csv", "/hier/"),
+    (MAZE, "PIPER†", "planner-share-rmaze-baselines.csv", "/piper/"),
     (MAZE, "DIPPER-No-V", "planner-share-rmaze-baselines.csv", "/dipper_nov/"),
 ]
 FINAL_MODEL_CASES = {
@@ -222,18 +260,18 @@ ABLATIONS: list[tuple[str, list[tuple[str, Learning]]]] = [
     (
         "lambda",
         [
-            ("0", Learning("dipper_paper-lambda0", ABLATIONS_CSV)),
-            ("0.01", Learning("dipper_paper-lambda0.01", ABLATIONS_CSV)),
-            ("0.1 (the paper's)", Learning("dipper_paper")),
-            ("1", Learning("dipper_paper-lambda1", ABLATIONS_CSV)),
+            ("0", Learning("dipper_paper-bc0.0078-lambda0", ABLATIONS_CSV)),
+            ("0.01", Learning("dipper_paper-bc0.0078-lambda0.01", ABLATIONS_CSV)),
+            ("0.1 (the paper's)", Learning("dipper_paper-bc0.0078")),
+            ("1", Learning("dipper_paper-bc0.0078-lambda1", ABLATIONS_CSV)),
         ],
     ),
     (
         "beta",
         [
-            ("0.01", Learning("dipper_paper-beta0.01", ABLATIONS_CSV)),
-            ("0.1 (the paper's)", Learning("dipper_paper")),
-            ("1", Learning("dipper_paper-beta1", ABLATIONS_CSV)),
+            ("0.01", Learning("dipper_paper-bc0.0078-beta0.01", ABLATIONS_CSV)),
+            ("0.1 (the paper's)", Learning("dipper_paper-bc0.0078")),
+            ("1", Learning("dipper_paper-bc0.0078-beta1", ABLATIONS_CSV)),
         ],
     ),
 ]
@@ -244,15 +282,18 @@ class Cell:
     success: list[float]  # one per seed
     partial: int  # seeds that had not finished their budget
     speeds: list[float] = field(default_factory=list)  # steps/s of wall time of the finished runs that recorded it
+    label: str = ""  # the runs' label (a Learning source's, or its earlier profile's)
+    earlier: bool = False  # made by the method's earlier profile
 
     def text(self) -> str:
         if not self.success:
             return ""
         values = np.array(self.success)
         partial = "*" if self.partial else ""
+        mark = EARLIER_PROFILE_MARK if self.earlier else ""
         if len(values) == 1:
-            return f"{values[0]:.2f} (1{partial})"
-        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{partial})"
+            return f"{values[0]:.2f} (1{partial}){mark}"
+        return f"{values.mean():.2f} +- {values.std():.2f} ({len(values)}{partial}){mark}"
 
 
 def learning_rows(name: str) -> dict[tuple[str, str], dict[int, list[dict[str, str]]]]:
@@ -266,9 +307,13 @@ def learning_rows(name: str) -> dict[tuple[str, str], dict[int, list[dict[str, s
 
 def learning_cell(task: str, source: Learning) -> tuple[Cell, list[plot.Curve]]:
     """The final evaluation within the budget of each seed, and each seed's curve."""
-    seeds = learning_rows(source.csv).get((task, source.label), {})
+    rows_by_label = learning_rows(source.csv)
+    seeds = rows_by_label.get((task, source.label), {})
+    cell, curves = Cell([], 0, label=source.label), []
+    if not seeds and source.earlier is not None:
+        seeds = rows_by_label.get((task, source.earlier), {})
+        cell.label, cell.earlier = source.earlier, bool(seeds)
     budget = TASKS[task][0]
-    cell, curves = Cell([], 0), []
     for rows in seeds.values():
         within = [row for row in rows if int(row["timesteps"]) <= budget]
         if not within:
@@ -321,9 +366,9 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
                 value, curves = cell(task, source)
                 cells.append(value.text())
                 if curves:
-                    panels[task][heading] = curves
+                    panels[task][f"{heading} {EARLIER_PROFILE_MARK}" if value.earlier else heading] = curves
                 if value.success:
-                    where = source.label if isinstance(source, Learning) else f"{source.csv}:{source.case}"  # type: ignore[union-attr]
+                    where = value.label if isinstance(source, Learning) else f"{source.csv}:{source.case}"  # type: ignore[union-attr]
                     speed = f"{np.mean(value.speeds):.0f}" if value.speeds else ""
                     seeds = str(len(value.success))
                     csv_rows.append([task, heading, where, seeds, value.text(), speed, str(len(value.speeds))])
@@ -334,7 +379,7 @@ def matrix() -> tuple[str, list[list[str]], dict[str, dict[str, list[plot.Curve]
         "Methods without demonstrations: RAPS, DPO-FLAT, SAC+HER; DAC, which cannot learn without them, takes the task's "
         "one scripted demonstration where the others take none."
     )
-    return "\n\n".join([*tables, legend]), csv_rows, panels
+    return "\n\n".join([*tables, legend, EARLIER_PROFILE_LEGEND]), csv_rows, panels
 
 
 def cell_speeds(csv_rows: list[list[str]]) -> str:

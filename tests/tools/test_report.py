@@ -40,6 +40,26 @@ def test_a_learning_cell_is_each_seeds_last_evaluation_within_the_budget(results
     assert empty.text() == ""
 
 
+def test_a_cell_shows_the_earlier_profiles_runs_marked_until_the_method_is_rerun(results):
+    earlier = report.Learning("piper", earlier="sac")
+    cell, curves = report.learning_cell("FetchPickAndPlaceFixed-v0", earlier)
+    assert cell.earlier and cell.label == "sac" and cell.text() == "0.50 +- 0.50 (2)†" and len(curves) == 2
+    rerun = report.Learning("hier", earlier="sac")
+    cell, _ = report.learning_cell("FetchPickAndPlaceFixed-v0", rerun)
+    assert not cell.earlier and cell.label == "hier" and cell.text() == "0.50 (1*)"
+
+
+def test_the_earlier_profiles_labels_name_what_changed():
+    fixed, push = "FetchPickAndPlaceFixed-v0", "FetchPushFixed-v0"
+    assert report.earlier_label("piper", fixed) == "piper-highauto-bc0.0078"
+    assert report.earlier_label("piper", push) == "piper-highauto"
+    dart = report.earlier_label("hier-dart20-noqf-bc1-demo0.5", "FetchPickAndPlace-v4")
+    assert dart == "hier-highauto-dart20-noqf-bc1-demo0.5"
+    assert report.earlier_label("raps", fixed) == "raps-hightau0.005"
+    assert report.earlier_label("dipper_paper-lambda0", fixed) == "dipper_paper-bc0.0078-lambda0"
+    assert report.earlier_label("dipper_paper", push) is None and report.earlier_label("sac_demo", fixed) is None
+
+
 def test_an_evaluated_cell_takes_each_runs_final_model_of_its_case(results):
     cell = report.evaluated_cell(report.Evaluated("share.csv", "FetchPickAndPlaceFixed", "lower_level_alone"))
     assert sorted(cell.success) == [0.7, 0.9] and cell.text() == "0.80 +- 0.10 (2)"
