@@ -217,6 +217,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "SAGA†", "planner-share-baselines.csv", "/saga/"),
     (PNP_FIXED, "PIPER†", "planner-share-baselines.csv", "/piper/"),
     (PNP_FIXED, "DIPPER-No-V†", "planner-share-baselines.csv", "/dipper_nov/"),
+    (PNP_FIXED, "PIPER", "planner-share-pnp-fixed-baselines.csv", "/piper/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
     (PUSH_FIXED, "HAC†", "planner-share-push-fixed-baselines.csv", "/hac/"),
     (PUSH_FIXED, "SAGA†", "planner-share-push-fixed-baselines.csv", "/saga/"),
