@@ -219,6 +219,8 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "DIPPER-No-V†", "planner-share-baselines.csv", "/dipper_nov/"),
     (PNP_FIXED, "PIPER", "planner-share-pnp-fixed-baselines.csv", "/piper/"),
     (PNP_FIXED, "HAC", "planner-share-pnp-fixed-baselines.csv", "/hac/"),
+    (PNP_FIXED, "HIER", "planner-share-pnp-fixed-baselines.csv", "/hier/"),
+    (PNP_FIXED, "DIPPER-No-V", "planner-share-pnp-fixed-baselines.csv", "/dipper_nov/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
     (PUSH_FIXED, "HAC†", "planner-share-push-fixed-baselines.csv", "/hac/"),
     (PUSH_FIXED, "SAGA†", "planner-share-push-fixed-baselines.csv", "/saga/"),
