@@ -220,6 +220,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "PIPER", "planner-share-pnp-fixed-baselines.csv", "/piper/"),
     (PNP_FIXED, "HAC", "planner-share-pnp-fixed-baselines.csv", "/hac/"),
     (PNP_FIXED, "HIER", "planner-share-pnp-fixed-baselines.csv", "/hier/"),
+    (PNP_FIXED, "SAGA", "planner-share-pnp-fixed-baselines.csv", "/saga/"),
     (PNP_FIXED, "DIPPER-No-V", "planner-share-pnp-fixed-baselines.csv", "/dipper_nov/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
     (PUSH_FIXED, "HAC†", "planner-share-push-fixed-baselines.csv", "/hac/"),
