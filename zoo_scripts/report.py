@@ -79,7 +79,7 @@ def profile_demonstrations(task: str) -> str:
 @dataclass(frozen=True)
 class Learning:
     """Final evaluations of the runs labelled ``label`` in a learning-curve CSV; where there are none yet, those of
-    ``earlier``, the same method's runs at its earlier profile (the cell is then marked, see :data:`EARLIER_PROFILE`)."""
+    ``earlier``, the same method's runs at its earlier profile (the cell is then marked: :data:`EARLIER_PROFILE_LEGEND`)."""
 
     label: str
     csv: str = "paper-tasks-cpu.csv"
@@ -213,36 +213,36 @@ FLAT_COLUMNS: list[tuple[str, dict[str, Source]]] = [
 # with the goal as every subgoal (zoo_scripts/research/planner_share.py), per task and method: (csv, the runs' path part).
 # A method marked with EARLIER_PROFILE_MARK is its earlier profile's runs.
 BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
-    (PNP_FIXED, "HAC†", "planner-share-baselines.csv", "/hac/"),
-    (PNP_FIXED, "SAGA†", "planner-share-baselines.csv", "/saga/"),
-    (PNP_FIXED, "PIPER†", "planner-share-baselines.csv", "/piper/"),
-    (PNP_FIXED, "DIPPER-No-V†", "planner-share-baselines.csv", "/dipper_nov/"),
+    (PNP_FIXED, f"HAC{EARLIER_PROFILE_MARK}", "planner-share-baselines.csv", "/hac/"),
+    (PNP_FIXED, f"SAGA{EARLIER_PROFILE_MARK}", "planner-share-baselines.csv", "/saga/"),
+    (PNP_FIXED, f"PIPER{EARLIER_PROFILE_MARK}", "planner-share-baselines.csv", "/piper/"),
+    (PNP_FIXED, f"DIPPER-No-V{EARLIER_PROFILE_MARK}", "planner-share-baselines.csv", "/dipper_nov/"),
     (PNP_FIXED, "PIPER", "planner-share-pnp-fixed-baselines.csv", "/piper/"),
     (PNP_FIXED, "HAC", "planner-share-pnp-fixed-baselines.csv", "/hac/"),
     (PNP_FIXED, "HIER", "planner-share-pnp-fixed-baselines.csv", "/hier/"),
     (PNP_FIXED, "SAGA", "planner-share-pnp-fixed-baselines.csv", "/saga/"),
     (PNP_FIXED, "DIPPER-No-V", "planner-share-pnp-fixed-baselines.csv", "/dipper_nov/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
-    (PUSH_FIXED, "HAC†", "planner-share-push-fixed-baselines.csv", "/hac/"),
-    (PUSH_FIXED, "SAGA†", "planner-share-push-fixed-baselines.csv", "/saga/"),
-    (PNP, "HAC†", "planner-share-pnp-random-baselines.csv", "/hac/"),
-    (PNP, "PIPER†", "planner-share-pnp-random-baselines.csv", "/piper/"),
+    (PUSH_FIXED, f"HAC{EARLIER_PROFILE_MARK}", "planner-share-push-fixed-baselines.csv", "/hac/"),
+    (PUSH_FIXED, f"SAGA{EARLIER_PROFILE_MARK}", "planner-share-push-fixed-baselines.csv", "/saga/"),
+    (PNP, f"HAC{EARLIER_PROFILE_MARK}", "planner-share-pnp-random-baselines.csv", "/hac/"),
+    (PNP, f"PIPER{EARLIER_PROFILE_MARK}", "planner-share-pnp-random-baselines.csv", "/piper/"),
     (PNP, "DIPPER-No-V", "planner-share-pnp-random-baselines.csv", "/dipper_nov/"),
-    (PNP, "SAGA†", "planner-share-pnp-random-baselines.csv", "/saga/"),
+    (PNP, f"SAGA{EARLIER_PROFILE_MARK}", "planner-share-pnp-random-baselines.csv", "/saga/"),
     (PNP, "paper's DIPPER", "planner-share-pnp-random-baselines.csv", "/dipper_paper/"),
-    (PUSH, "HIER†", "planner-share-push-random-dart200-hier.csv", "/hier/"),
+    (PUSH, f"HIER{EARLIER_PROFILE_MARK}", "planner-share-push-random-dart200-hier.csv", "/hier/"),
     (PUSH, "paper's DIPPER", "planner-share-push-random-baselines.csv", "/dipper_paper/"),
-    (KITCHEN, "HIER†", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
+    (KITCHEN, f"HIER{EARLIER_PROFILE_MARK}", "planner-share-kitchen-hier-demo0.5.csv", "/hier/"),
     (KITCHEN, "paper's DIPPER", "planner-share-kitchen-baselines.csv", "/dipper_paper/"),
-    (MAZE_FIXED, "HAC†", "planner-share-maze-baselines.csv", "/hac/"),
-    (MAZE_FIXED, "SAGA†", "planner-share-maze-baselines.csv", "/saga/"),
-    (MAZE_FIXED, "PIPER†", "planner-share-maze-baselines.csv", "/piper/"),
+    (MAZE_FIXED, f"HAC{EARLIER_PROFILE_MARK}", "planner-share-maze-baselines.csv", "/hac/"),
+    (MAZE_FIXED, f"SAGA{EARLIER_PROFILE_MARK}", "planner-share-maze-baselines.csv", "/saga/"),
+    (MAZE_FIXED, f"PIPER{EARLIER_PROFILE_MARK}", "planner-share-maze-baselines.csv", "/piper/"),
     (MAZE_FIXED, "DIPPER-No-V", "planner-share-maze-baselines.csv", "/dipper_nov/"),
-    (MAZE_FIXED, "HIER†", "planner-share-maze-baselines.csv", "/hier/"),
-    (MAZE, "HAC†", "planner-share-rmaze-baselines.csv", "/hac/"),
-    (MAZE, "SAGA†", "planner-share-rmaze-baselines.csv", "/saga/"),
-    (MAZE, "HIER†", "planner-share-rmaze-baselines.csv", "/hier/"),
-    (MAZE, "PIPER†", "planner-share-rmaze-baselines.csv", "/piper/"),
+    (MAZE_FIXED, f"HIER{EARLIER_PROFILE_MARK}", "planner-share-maze-baselines.csv", "/hier/"),
+    (MAZE, f"HAC{EARLIER_PROFILE_MARK}", "planner-share-rmaze-baselines.csv", "/hac/"),
+    (MAZE, f"SAGA{EARLIER_PROFILE_MARK}", "planner-share-rmaze-baselines.csv", "/saga/"),
+    (MAZE, f"HIER{EARLIER_PROFILE_MARK}", "planner-share-rmaze-baselines.csv", "/hier/"),
+    (MAZE, f"PIPER{EARLIER_PROFILE_MARK}", "planner-share-rmaze-baselines.csv", "/piper/"),
     (MAZE, "DIPPER-No-V", "planner-share-rmaze-baselines.csv", "/dipper_nov/"),
 ]
 FINAL_MODEL_CASES = {
