@@ -5,6 +5,10 @@ from pathlib import Path
 
 # Headless MuJoCo rendering; set before mujoco is imported anywhere.
 os.environ.setdefault("MUJOCO_GL", "egl")
+# One torch thread in every process a test starts too (scripts, zoo runs): with both cores busy running the test
+# workers, a second thread per process spins against the other worker's and a tiny run takes ten times as long.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import pytest
 import torch as th

@@ -93,9 +93,8 @@ TINY_PARAMS = {
 
 
 def zoo(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     return subprocess.run(
-        [sys.executable, "-m", "sb3_dipper.zoo", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600
+        [sys.executable, "-m", "sb3_dipper.zoo", *args], cwd=cwd, capture_output=True, text=True, timeout=600
     )
 
 
@@ -459,12 +458,11 @@ def optimize_args(algo: str, storage: str, log_folder: str, n_trials: int = 1) -
 
 
 def test_two_tuning_workers_share_a_journal_file_study(tmp_path):
-    env = {**os.environ, "MUJOCO_GL": "egl", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     # Each worker has its own log folder: rl-zoo3 names a tuning report after the second it is written in.
     command = [sys.executable, "-m", "sb3_dipper.zoo"]
     storage_path = str(tmp_path / "study.log")
     workers = [
-        subprocess.Popen([*command, *optimize_args("dipper", storage_path, f"worker{i}")], cwd=tmp_path, env=env, text=True,
+        subprocess.Popen([*command, *optimize_args("dipper", storage_path, f"worker{i}")], cwd=tmp_path, text=True,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         for i in range(2)
     ]  # fmt: skip
