@@ -222,6 +222,7 @@ BASELINE_FINAL_MODELS: list[tuple[str, str, str, str]] = [
     (PNP_FIXED, "HIER", "planner-share-pnp-fixed-baselines.csv", "/hier/"),
     (PNP_FIXED, "SAGA", "planner-share-pnp-fixed-baselines.csv", "/saga/"),
     (PNP_FIXED, "DIPPER-No-V", "planner-share-pnp-fixed-baselines.csv", "/dipper_nov/"),
+    (PNP_FIXED, "paper's DIPPER", "planner-share-pnp-fixed-baselines.csv", "/dipper_paper/"),
     (PUSH_FIXED, "DIPPER-No-V", "planner-share-nov-push.csv", "/dipper_nov/"),
     (PUSH_FIXED, f"HAC{EARLIER_PROFILE_MARK}", "planner-share-push-fixed-baselines.csv", "/hac/"),
     (PUSH_FIXED, f"SAGA{EARLIER_PROFILE_MARK}", "planner-share-push-fixed-baselines.csv", "/saga/"),
